@@ -1,0 +1,1 @@
+"""Benchmarks (``make bench``): measured here, printed as a table; never asserted in unit tests."""

@@ -1,0 +1,70 @@
+"""``python -m bench``: the method's and the simulator's speed, side by side in one run.
+
+Rows: simulator speed as a multiple of real time (hover, 20 s); the estimator + controller
+tick; network inference at batch 1; and the whole ``neso experiment paper`` pipeline
+(``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
+Pass ``--quick`` to skip the full pipeline.
+"""
+from __future__ import annotations
+
+import sys
+import time
+import timeit
+
+import numpy as np
+
+
+def _per_call_us(fn, number: int) -> float:
+    return min(timeit.repeat(fn, number=number, repeat=5)) / number * 1e6
+
+
+def bench_tick() -> tuple[float, float]:
+    from neso.control import PositionController
+    from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
+    from neso.types import Reference, StateMeasurement
+    from tests.unit.helpers import random_network
+
+    net = random_network(0, bound=1.0)
+    est = NeuralESO(NeuralEsoConfig(), net)
+    ctrl = PositionController()
+    meas = StateMeasurement(0.0, np.array([0, 0, 1.0]), np.zeros(3), 0.0, 0.0, 0.0)
+    est.reset(meas, 9.81)
+    ref = Reference(pos_enu_m=np.array([0, 0, 1.0]))
+    applied = AppliedControl(np.zeros(3), 9.81)
+
+    def tick():
+        e = est.update(meas, applied)
+        ctrl.step(meas, ref, e.f_hat)
+
+    return _per_call_us(tick, 2000), _per_call_us(lambda: net.predict(meas.pos_enu_m.repeat(2)[:5]), 20000)
+
+
+def main(argv: list[str]) -> int:
+    from sim.quadrotor import sim_speed_x_real_time
+
+    rows = []
+    rows.append(("simulator, hover 20 s", f"{sim_speed_x_real_time(20.0):.0f}× real time"))
+    tick_us, predict_us = bench_tick()
+    rows.append(("estimator + controller tick (Neural-ESO)", f"{tick_us:.1f} µs"))
+    rows.append(("network inference, batch 1 (5→20→25→10→1)", f"{predict_us:.1f} µs"))
+    if "--quick" not in argv:
+        from sim.experiments import PaperConfig, run_paper
+
+        t0 = time.perf_counter()
+        run = run_paper(PaperConfig(trials=5), log=lambda *_: None)
+        total = time.perf_counter() - t0
+        flights = 3 + 4 * 5 * 2 + 3 * 5 * 2 + 1 + 6 * 5
+        rows.append(("neso experiment paper --trials 5 (target < 60 s, limit 180 s)", f"{total:.1f} s"))
+        for stage, secs in run.details["timing_s"].items():
+            rows.append((f"  stage {stage}", f"{secs:.1f} s"))
+        rows.append(("  flights flown (approx.)", str(flights)))
+    width = max(len(r[0]) for r in rows)
+    print(f"{'benchmark'.ljust(width)}  result")
+    print(f"{'-' * width}  ------")
+    for name, value in rows:
+        print(f"{name.ljust(width)}  {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

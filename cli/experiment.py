@@ -1,0 +1,48 @@
+"""``neso experiment paper``: the paper's Section V in simulation, tables, JSON and plots."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("experiment", help="reproduce the paper's experiments in simulation")
+    p.add_argument("name", choices=["paper"], help="which experiment set")
+    p.add_argument("--trials", type=int, default=5, help="trials (seeds) per method (default 5)")
+    p.add_argument("--json", type=Path, help="write the results in the documented JSON shape")
+    p.add_argument("--details", type=Path, help="write settling times, network certificates and timings as JSON")
+    p.add_argument("--plots", type=Path, help="directory for PNG figures (paper Fig. 3, 5, 6, 7 analogues)")
+    p.add_argument("--omega-o", type=float, default=None, help="observer bandwidth rad/s (default 15)")
+    p.add_argument("--epochs", type=int, default=None, help="training epochs (default 100, as the paper)")
+    p.add_argument("--workers", type=int, default=0, help="flight processes (default: one per core)")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def run(args) -> int:
+    from dataclasses import replace
+
+    from sim.experiments import PaperConfig, results_json, run_paper
+    from sim.report import format_comparisons, format_tables
+
+    config = replace(PaperConfig(), trials=args.trials, workers=args.workers, seed=args.seed)
+    if args.omega_o is not None:
+        config = replace(config, omega_o_rps=args.omega_o)
+    if args.epochs is not None:
+        config = replace(config, epochs=args.epochs)
+    run_ = run_paper(config)
+    print()
+    print(format_tables(run_.results, run_.details))
+    print()
+    print(format_comparisons(run_.results))
+    print(f"\n{args.trials} trials per method; total {run_.seconds:.1f} s wall")
+    if args.json:
+        args.json.write_text(json.dumps(results_json(run_, args.trials), indent=2))
+        print(f"results: {args.json}")
+    if args.details:
+        args.details.write_text(json.dumps(run_.details, indent=2))
+    if args.plots:
+        from cli.plots import write_plots
+
+        for path in write_plots(run_, config, args.plots):
+            print(f"plot: {path}")
+    return 0

@@ -1,0 +1,1 @@
+"""The Neural-ESO method: pure math, no I/O, no bus."""

@@ -1,0 +1,139 @@
+"""The outer-loop control law (paper eq. 2, 3, 9) and its mapping to a PX4 attitude setpoint.
+
+    a_d = q̈* + k_p (q* − q) + k_d (q̇* − q̇) − f̂           (ENU, m/s²)
+    F_d = m (a_d − g)    with g = (0, 0, −9.81)             (N)
+
+The increment of F_d between two samples is saturated (paper Remark 2: this is what makes
+Assumption 2, ‖u̇‖ ≤ L_u, true), its tilt is limited, then T_d = ‖F_d‖ and R_d has its
+z axis along F_d and its heading at ψ_d (Lee, Leok & McClamroch 2010); roll and pitch are
+read off R_d. PX4 takes normalised thrust, here T_d / (m g) · hover_thrust_norm: linear
+in force through the hover-thrust estimate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from neso.estimator import AppliedControl
+from neso.rotations import euler_zyx_from_world_from_body, world_from_body_zyx
+from neso.types import AttitudeSetpoint, Reference, StateMeasurement, VehicleModel
+
+
+@dataclass(frozen=True, slots=True)
+class ControlConfig:
+    """Gains per axis (x, y, z): ``kp`` in 1/s², ``kd`` in 1/s.
+
+    ``force_rate_limit_nps``: the largest change of each component of F_d per second
+    (N/s); at 50 Hz and 40 N/s that is 0.8 N per sample. ``max_tilt_rad``: tilt limit.
+    """
+
+    kp: tuple[float, float, float] = (6.0, 6.0, 10.0)
+    kd: tuple[float, float, float] = (4.5, 4.5, 6.0)
+    dt_s: float = 0.02
+    force_rate_limit_nps: float = 40.0
+    max_tilt_rad: float = math.radians(35.0)
+    min_thrust_fraction: float = 0.1
+    vehicle: VehicleModel = field(default_factory=VehicleModel)
+
+    def __post_init__(self) -> None:
+        for name in ("kp", "kd"):
+            gains = getattr(self, name)
+            if len(gains) != 3 or not all(g > 0 and math.isfinite(g) for g in gains):
+                raise ValueError(f"{name} must be three positive finite gains, got {gains}")
+        if not self.force_rate_limit_nps > 0:
+            raise ValueError("force_rate_limit_nps must be positive")
+
+
+@dataclass(frozen=True, slots=True)
+class ControlOutput:
+    setpoint: AttitudeSetpoint
+    applied: AppliedControl  # what the estimator must be told acted over the next period
+    force_enu_n: np.ndarray  # F_d after saturation (3,)
+    acc_desired_enu_mps2: np.ndarray  # a_d before saturation (3,)
+
+
+def hover_force(vehicle: VehicleModel) -> np.ndarray:
+    return np.array([0.0, 0.0, vehicle.mass_kg * vehicle.gravity_mps2])
+
+
+def limit_tilt(force_enu_n: np.ndarray, max_tilt_rad: float, min_up_n: float) -> np.ndarray:
+    """Keep the vertical component ≥ ``min_up_n`` and the tilt from vertical ≤ ``max_tilt_rad``."""
+    fz = max(float(force_enu_n[2]), min_up_n)
+    horizontal = math.hypot(float(force_enu_n[0]), float(force_enu_n[1]))
+    max_horizontal = fz * math.tan(max_tilt_rad)
+    scale = 1.0 if horizontal <= max_horizontal else max_horizontal / horizontal
+    return np.array([force_enu_n[0] * scale, force_enu_n[1] * scale, fz])
+
+
+def attitude_from_force(force_enu_n: np.ndarray, yaw_rad: float) -> tuple[float, float, float, float]:
+    """(thrust N, roll rad, pitch rad, yaw rad) with the body z axis along ``force_enu_n`` (3,)."""
+    thrust_n = float(np.linalg.norm(force_enu_n))
+    z_b = force_enu_n / thrust_n
+    # x_b ⟂ the horizontal y axis at ψ_d keeps x_b in the vertical plane of heading ψ_d,
+    # so the ZYX yaw of R_d is exactly ψ_d (building from x_c instead drifts it when tilted)
+    y_c = np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])
+    x_b = np.cross(y_c, z_b)
+    x_b /= np.linalg.norm(x_b)
+    y_b = np.cross(z_b, x_b)
+    world_from_desired = np.column_stack((x_b, y_b, z_b))
+    roll, pitch, yaw = euler_zyx_from_world_from_body(world_from_desired)
+    return thrust_n, roll, pitch, yaw
+
+
+def normalised_thrust(thrust_n: float, vehicle: VehicleModel) -> float:
+    """PX4 normalised thrust in [0, 1] for ``thrust_n`` through the hover-thrust estimate."""
+    return min(1.0, max(0.0, thrust_n / vehicle.hover_thrust_n * vehicle.hover_thrust_norm))
+
+
+def nominal_acceleration(setpoint: AttitudeSetpoint, vehicle: VehicleModel) -> np.ndarray:
+    """g + R·[0, 0, T]/m (3,): what ``setpoint`` accelerates the nominal model by (the ESO's input)."""
+    thrust_n = setpoint.thrust_norm / vehicle.hover_thrust_norm * vehicle.hover_thrust_n
+    z_body = world_from_body_zyx(setpoint.roll_rad, setpoint.pitch_rad, setpoint.yaw_rad)[:, 2]
+    return z_body * (thrust_n / vehicle.mass_kg) - np.array([0.0, 0.0, vehicle.gravity_mps2])
+
+
+class PositionController:
+    """PD + feed-forward − f̂, with the force increment saturated between samples."""
+
+    def __init__(self, config: ControlConfig = ControlConfig()) -> None:
+        self.config = config
+        self._kp = np.array(config.kp)
+        self._kd = np.array(config.kd)
+        self._max_step_n = config.force_rate_limit_nps * config.dt_s
+        self._min_up_n = config.min_thrust_fraction * config.vehicle.hover_thrust_n
+        self.force_prev_enu_n = hover_force(config.vehicle)
+
+    def reset(self, force_enu_n: np.ndarray | None = None) -> None:
+        self.force_prev_enu_n = hover_force(self.config.vehicle) if force_enu_n is None else np.array(force_enu_n, float)
+
+    def hover_output(self, yaw_rad: float = 0.0) -> ControlOutput:
+        """The setpoint that holds the nominal model in hover (used before the first sample)."""
+        return self._output(hover_force(self.config.vehicle), yaw_rad, np.zeros(3))
+
+    def step(self, meas: StateMeasurement, ref: Reference, f_hat_mps2: np.ndarray) -> ControlOutput:
+        vehicle = self.config.vehicle
+        acc_desired = (
+            ref.acc_enu_mps2
+            + self._kp * (ref.pos_enu_m - meas.pos_enu_m)
+            + self._kd * (ref.vel_enu_mps - meas.vel_enu_mps)
+            - f_hat_mps2
+        )
+        force = vehicle.mass_kg * (acc_desired + np.array([0.0, 0.0, vehicle.gravity_mps2]))
+        if not np.all(np.isfinite(force)):
+            force = self.force_prev_enu_n.copy()
+        step = np.clip(force - self.force_prev_enu_n, -self._max_step_n, self._max_step_n)
+        force = limit_tilt(self.force_prev_enu_n + step, self.config.max_tilt_rad, self._min_up_n)
+        self.force_prev_enu_n = force
+        return self._output(force, ref.yaw_rad, acc_desired)
+
+    def _output(self, force: np.ndarray, yaw_rad: float, acc_desired: np.ndarray) -> ControlOutput:
+        vehicle = self.config.vehicle
+        thrust_n, roll, pitch, yaw = attitude_from_force(force, yaw_rad)
+        setpoint = AttitudeSetpoint(
+            roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
+            thrust_norm=normalised_thrust(thrust_n, vehicle), thrust_n=thrust_n,
+        )
+        applied = AppliedControl(acc_cmd_enu_mps2=nominal_acceleration(setpoint, vehicle), thrust_n=thrust_n)
+        return ControlOutput(setpoint=setpoint, applied=applied, force_enu_n=force, acc_desired_enu_mps2=acc_desired)

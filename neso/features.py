@@ -1,0 +1,46 @@
+"""The network's input vector z and the labels it learns from (paper Sec. III-A, V-C).
+
+z_k = [pos_z, vel_z, previous thrust, roll, pitch] — position and velocity measured,
+thrust the one commanded at the previous sample (the paper's T_{k−1}), no acceleration.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from neso.types import StateMeasurement
+
+FEATURE_NAMES = ("pos_z_m", "vel_z_mps", "thrust_prev_n", "roll_rad", "pitch_rad")
+N_FEATURES = len(FEATURE_NAMES)
+
+# Label kinds a dataset may hold (the estimate that produced y_k):
+#   eso_teacher — x̂3 of a plain ESO (pathway "eso"), for a first network;
+#   tdr         — f_N + Δf̂ under Neural-ESO, for Total Disturbance Retraining;
+#   acceleration — measured acceleration minus the commanded one (PD+NN baseline only).
+LABEL_KINDS = ("eso_teacher", "tdr", "acceleration")
+
+
+def network_features(meas: StateMeasurement, thrust_prev_n: float) -> np.ndarray:
+    """z (5,) from one measurement and the thrust (N) commanded at the previous sample."""
+    return np.array(
+        [meas.pos_enu_m[2], meas.vel_enu_mps[2], thrust_prev_n, meas.roll_rad, meas.pitch_rad]
+    )
+
+
+def label_kind_for_pathway(pathway: str) -> str:
+    """Which label a flight under ``pathway`` yields when its f̂ is recorded."""
+    if pathway == "eso":
+        return "eso_teacher"
+    if pathway == "neural_eso":
+        return "tdr"
+    raise ValueError(f"a flight under pathway {pathway!r} yields no training label: f̂ there is not an observer estimate")
+
+
+def acceleration_labels(vel_mps: np.ndarray, acc_cmd_mps2: np.ndarray, dt_s: float) -> np.ndarray:
+    """Neural-Lander-style labels: measured minus commanded z acceleration.
+
+    ``vel_mps`` (N,) measured z velocity, ``acc_cmd_mps2`` (N,) the nominal acceleration the
+    command applied over [k, k+1). The measured acceleration is the forward difference
+    (v_{k+1} − v_k)/Δ, so the result has N − 1 rows (the last sample has no successor).
+    """
+    acc_meas = np.diff(vel_mps) / dt_s
+    return acc_meas - acc_cmd_mps2[:-1]

@@ -1,0 +1,112 @@
+"""Text tables shaped like the paper's (mean ± std over trials, cm), from the results dict."""
+from __future__ import annotations
+
+PAPER_FIGURES_CM = {
+    "nominal_landing": {"pd": 10.95, "pd_nn": 2.49, "pd_eso": 1.84, "neural_eso": 0.37},
+    "ood_slope": {"pd_nn": 3.74, "pd_eso": 0.66, "neural_eso": 1.53},
+    "lemniscate_near_ground": {"pd": 4.08, "pd_nn": 5.47, "pd_eso": 1.91, "neural_eso": 4.09, "neural_eso_tdr": 0.89},
+    "lipschitz_ablation": {
+        "nominal": {"0.2": 2.73, "0.5": 0.71, "1.0": 0.37, "2.0": 1.43},
+        "ood": {"0.2": 1.69, "0.5": 0.63, "1.0": 1.53, "2.0": 2.59},
+    },
+}
+
+
+def _cell(result: dict) -> str:
+    if result["mean"] is None:
+        return f"diverged {result['diverged']}/{len(result['trials'])}"
+    text = f"{result['mean']:.2f} ± {result['std']:.2f}"
+    if result["diverged"]:
+        text += f" ({result['diverged']} div.)"
+    return text
+
+
+def _table(title: str, rows: list[tuple[str, str, str]]) -> str:
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    lines = [title]
+    for i, row in enumerate(rows):
+        lines.append("  " + "  ".join(cell.ljust(w) for cell, w in zip(row, widths)))
+        if i == 0:
+            lines.append("  " + "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def format_tables(results: dict, details: dict | None = None) -> str:
+    out = []
+    for name, title in (
+        ("nominal_landing", "Experiment 1 — nominal landing: steady-state |z error| [cm]"),
+        ("ood_slope", "Experiment 2 — OOD slope: steady-state |z error| [cm]"),
+        ("lemniscate_near_ground", "Experiment 3 — lemniscate near ground: z RMSE [cm]"),
+    ):
+        if name not in results:
+            continue
+        rows = [("method", "sim (mean ± std)", "paper (hardware)")]
+        settle = (details or {}).get("settling_time_s", {}).get(name, {})
+        for method, result in results[name]["methods"].items():
+            cell = _cell(result)
+            if method in settle and settle[method]["mean"] is not None:
+                cell += f"   settles {settle[method]['mean']:.2f} s"
+            paper = PAPER_FIGURES_CM[name].get(method)
+            rows.append((method, cell, "—" if paper is None else f"{paper:.2f}"))
+        out.append(_table(title, rows))
+    if "lipschitz_ablation" in results:
+        rows = [("L_N (normalised)", "nominal", "OOD")]
+        abl = results["lipschitz_ablation"]
+        for bound in abl["nominal"]:
+            paper_n = PAPER_FIGURES_CM["lipschitz_ablation"]["nominal"].get(bound)
+            paper_o = PAPER_FIGURES_CM["lipschitz_ablation"]["ood"].get(bound)
+            rows.append((
+                bound,
+                f"{_cell(abl['nominal'][bound])}  (paper {paper_n})",
+                f"{_cell(abl['ood'][bound])}  (paper {paper_o})",
+            ))
+        out.append(_table("L_N ablation — Neural-ESO steady-state |z error| [cm]", rows))
+    return "\n\n".join(out)
+
+
+def comparisons(results: dict) -> list[tuple[str, bool, str]]:
+    """The paper's claims checked on these results: (claim, holds, figures)."""
+    def mean(exp, method):
+        return results[exp]["methods"][method]["mean"]
+
+    claims = []
+    nl = "nominal_landing"
+    if nl in results:
+        order = ["neural_eso", "pd_eso", "pd_nn", "pd"]
+        means = [mean(nl, m) for m in order]
+        holds = None not in means and all(a < b for a, b in zip(means, means[1:]))
+        ratio = means[0] / means[1] if None not in means[:2] else None
+        claims.append(("nominal: neural_eso < pd_eso < pd_nn < pd", bool(holds),
+                       " < ".join(f"{m} {v}" for m, v in zip(order, _fmt(means))) +
+                       (f"; neural_eso/pd_eso = {ratio:.2f} (paper 0.20)" if ratio is not None else "")))
+    if "ood_slope" in results:
+        a, b = mean("ood_slope", "neural_eso"), mean("ood_slope", "pd_nn")
+        div = results["ood_slope"]["methods"]["neural_eso"]["diverged"]
+        claims.append(("OOD slope: neural_eso bounded and better than pd_nn",
+                       a is not None and div == 0 and (b is None or a < b), f"neural_eso {_fmt([a])[0]}, pd_nn {_fmt([b])[0]}"))
+    le = "lemniscate_near_ground"
+    if le in results:
+        tdr, eso = mean(le, "neural_eso_tdr"), mean(le, "pd_eso")
+        gain = None if None in (tdr, eso) else 1 - tdr / eso
+        claims.append(("lemniscate: neural_eso_tdr beats pd_eso by ≥ 45 %", gain is not None and gain >= 0.45,
+                       f"reduction {gain * 100:.1f} % (paper 53.4 %)" if gain is not None else "n/a"))
+        methods = results[le]["methods"]
+        nobs = methods["neural_observer"]
+        worst = max((r["mean"] for m, r in methods.items() if r["mean"] is not None and m != "neural_observer"), default=0)
+        claims.append(("lemniscate: neural_observer diverges or is worst",
+                       nobs["diverged"] > 0 or (nobs["mean"] is not None and nobs["mean"] >= worst),
+                       f"neural_observer {_cell(nobs)}, worst other {worst:.2f}"))
+        claims.append(("lemniscate: pd_nn worse than pd_eso", (mean(le, "pd_nn") or float("inf")) > (eso or 0),
+                       f"pd_nn {_fmt([mean(le, 'pd_nn')])[0]}, pd_eso {_fmt([eso])[0]}"))
+    return claims
+
+
+def _fmt(values):
+    return ["div." if v is None else f"{v:.2f}" for v in values]
+
+
+def format_comparisons(results: dict) -> str:
+    lines = ["The paper's comparisons in this simulation:"]
+    for claim, holds, figures in comparisons(results):
+        lines.append(f"  [{'holds' if holds else 'FAILS'}] {claim}: {figures}")
+    return "\n".join(lines)

@@ -1,0 +1,280 @@
+"""The small-gain certificate (paper Section IV): Lyapunov algebra, verdicts, monotonicity, bounds, CLI."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neso.certificate import (
+    CertificateInputs,
+    certify_literal,
+    certify_tight,
+    lyapunov_residual,
+    max_certified_lipschitz,
+    observer_matrices,
+    tracking_matrices,
+    verify_certificate,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+GAIN_SETS = [(10.0, 6.0, 20.0), (10.0, 6.0, 10.0), (4.0, 4.0, 10.0), (25.0, 10.0, 30.0)]
+
+
+def inputs(kp=10.0, kd=6.0, w=20.0, lip=0.01, **kw) -> CertificateInputs:
+    return CertificateInputs(kp=kp, kd=kd, omega_o=w, lipschitz=lip, **kw)
+
+
+# ------------------------------------------------------------------------------------- Lyapunov algebra
+
+
+@pytest.mark.parametrize("method", ["literal", "tight"])
+def test_lyapunov_equations_are_solved(method):
+    inp = inputs(lip=0.01)
+    res = certify_literal(inp) if method == "literal" else certify_tight(inp)
+    a_e, _ = tracking_matrices(inp.kp, inp.kd)
+    a_o, _ = observer_matrices(inp.omega_o)
+    # Unscaled P's solve Aᵀ P + P A = −T Q̄ T (T = I for the literal certificate).
+    q_e = np.diag(res.scale_e) @ res.Q_e @ np.diag(res.scale_e)
+    q_o = np.diag(res.scale_obs) @ res.Q_obs @ np.diag(res.scale_obs)
+    assert lyapunov_residual(a_e, res.P_e, q_e) < 1e-10
+    assert lyapunov_residual(a_o, res.P_obs, q_o) < 1e-10
+    assert np.linalg.eigvalsh(res.P_e)[0] > 0 and np.linalg.eigvalsh(res.P_obs)[0] > 0
+    if method == "literal":
+        assert np.allclose(res.Q_e, np.eye(2)) and np.allclose(res.Q_obs, np.eye(3))
+
+
+# ------------------------------------------------------------------------------------- literal figures
+
+
+def test_literal_max_lipschitz_for_paper_gains_is_about_0p018():
+    # Closed form: λ_e(λ_o − 2 c_pb L) = (‖P_eB_e‖ + c_pb λ_c L)², with ‖P_eB_e‖ = 0.1044, c_pb = 3.822.
+    corrected = certify_literal(inputs(lip=0.0)).max_certified_lipschitz
+    printed = certify_literal(inputs(lip=0.0, lambda_c_rule="paper")).max_certified_lipschitz
+    assert 0.015 < corrected < 0.020
+    assert 0.015 < printed < 0.020
+    assert corrected < printed  # the corrected λ_c is larger
+    assert corrected == pytest.approx(0.017695, rel=1e-3)
+
+
+@pytest.mark.parametrize("method", ["literal", "tight"])
+def test_bisection_matches_closed_form_max_lipschitz(method):
+    inp = inputs(lip=0.0)
+    res = certify_literal(inp) if method == "literal" else certify_tight(inp, optimise_bound=False)
+    assert max_certified_lipschitz(inp, method) == pytest.approx(res.max_certified_lipschitz, rel=1e-7)
+
+
+# ------------------------------------------------------------------------------------- verdict properties
+
+
+@pytest.mark.parametrize("method", ["literal", "tight"])
+def test_verdict_is_monotone_in_lipschitz(method):
+    base = inputs(lip=0.0)
+    lmax = (certify_literal(base) if method == "literal" else certify_tight(base)).max_certified_lipschitz
+    sweep = np.linspace(0.0, 2.0 * lmax, 50)
+    verdicts = []
+    for lip in sweep:
+        inp = replace(base, lipschitz=float(lip))
+        res = certify_literal(inp) if method == "literal" else certify_tight(inp, optimise_bound=False)
+        verdicts.append(res.holds)
+        # α_e, α_o > 0 iff holds
+        assert res.holds == (res.alpha_e > 0 and res.alpha_o > 0)
+        if res.holds:
+            assert verify_certificate(inp, res)
+            assert math.isfinite(res.ultimate_bound)
+        else:
+            assert res.ultimate_bound == math.inf
+    first_fail = verdicts.index(False)
+    assert all(verdicts[:first_fail]) and not any(verdicts[first_fail:])
+    assert 0 < first_fail < 50
+    assert sweep[first_fail - 1] < lmax <= sweep[first_fail]
+
+
+def test_bound_refinement_does_not_change_the_tight_verdict():
+    for lip in (0.0, 0.3, 0.9, 1.1):
+        inp = inputs(lip=lip)
+        a, b = certify_tight(inp), certify_tight(inp, optimise_bound=False)
+        assert a.holds == b.holds
+        if a.holds:
+            assert a.ultimate_bound <= b.ultimate_bound * (1 + 1e-12)
+            assert verify_certificate(inp, a)
+
+
+@pytest.mark.parametrize("gains", GAIN_SETS)
+def test_tight_certifies_at_least_the_literal_lipschitz(gains):
+    inp = inputs(*gains, lip=0.0)
+    lit, tight = certify_literal(inp), certify_tight(inp)
+    assert tight.max_certified_lipschitz >= lit.max_certified_lipschitz
+    # and the gain is substantial (bandwidth scaling removes the ‖P_obs B_obs‖ ~ ω conditioning)
+    assert tight.max_certified_lipschitz > 5 * lit.max_certified_lipschitz
+
+
+@pytest.mark.parametrize("gains", GAIN_SETS)
+@pytest.mark.parametrize("method", ["literal", "tight"])
+def test_zero_lipschitz_holds_for_hurwitz_gains(gains, method):
+    inp = inputs(*gains, lip=0.0)
+    res = certify_literal(inp) if method == "literal" else certify_tight(inp)
+    assert res.holds and res.alpha > 0 and verify_certificate(inp, res)
+
+
+def test_literal_bound_at_zero_lipschitz_is_the_eso_only_value():
+    """With L_N = 0 the bound is min over δ_e, δ_c of sqrt((c_pb L_1)² / (δ_c · min(λ_e−δ_e, λ_o−δ_c−p²/δ_e)))."""
+    inp = inputs(lip=0.0)
+    res = certify_literal(inp)
+    c, p = res.c_pb, res.pe_be_norm
+    d_e = np.linspace(1e-3, 1 - 1e-3, 1200)[:, None]
+    d_c = np.linspace(1e-3, 1 - 1e-3, 1200)[None, :]
+    alpha = np.minimum(1 - d_e, 1 - d_c - p * p / d_e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = np.where(alpha > 0, np.sqrt((c * inp.L_1) ** 2 / (d_c * alpha)), np.inf)
+    grid = float(bound.min())
+    assert res.ultimate_bound == pytest.approx(grid, rel=2e-3)
+    assert res.ultimate_bound <= grid * (1 + 1e-9)
+    # continuity: the bound tends to the ESO-only value as L_N → 0, for both methods
+    for method_fn in (certify_literal, certify_tight):
+        b0 = method_fn(inp).ultimate_bound
+        b_small = method_fn(replace(inp, lipschitz=1e-9)).ultimate_bound
+        assert b_small == pytest.approx(b0, rel=1e-3)
+
+
+def test_n_axes_does_not_change_the_certificate():
+    one, three = inputs(lip=0.3), inputs(lip=0.3, n_axes=3)
+    for fn in (certify_literal, certify_tight):
+        a, b = fn(one), fn(three)
+        assert a.holds == b.holds
+        assert a.max_certified_lipschitz == pytest.approx(b.max_certified_lipschitz, rel=1e-12)
+        assert a.ultimate_bound == pytest.approx(b.ultimate_bound, rel=1e-12)
+        if b.holds:
+            assert verify_certificate(three, b)  # rebuilt with the 3-axis Kronecker matrices
+
+
+def test_verifier_rejects_a_tampered_certificate():
+    inp = inputs(lip=0.9)
+    res = certify_tight(inp)
+    assert res.holds and verify_certificate(inp, res)
+    assert not verify_certificate(inp, replace(res, scale_obs=np.ones(3)))  # literal coordinates fail at 0.9
+    assert not verify_certificate(inp, replace(res, ultimate_bound=0.5 * res.ultimate_bound))
+    assert not verify_certificate(replace(inp, lipschitz=1.2), res)
+    lit = certify_literal(inputs(lip=0.01))
+    assert verify_certificate(inputs(lip=0.01), lit)
+    assert not verify_certificate(inputs(lip=0.01), replace(lit, delta_c=2.0))
+
+
+# ------------------------------------------------------------------------------------- the bound itself
+
+
+def _worst_vdot(res, inp, e_s: np.ndarray, e_o: np.ndarray) -> np.ndarray:
+    """V̇ along the true error dynamics with the worst Δḟ allowed by Lemma 1; rows are samples.
+
+    Built here from the paper's matrices, independently of the certificate's own algebra.
+    """
+    kp, kd, w = inp.kp, inp.kd, inp.omega_o
+    a_e = np.array([[0.0, 1.0], [-kp, -kd]])
+    a_o = np.array([[-3 * w, 1.0, 0.0], [-3 * w * w, 0.0, 1.0], [-(w**3), 0.0, 0.0]])
+    lam_c = math.hypot(kp, kd + 1.0)
+    f_tilde = e_o[:, 2]
+    de_s = e_s @ a_e.T + np.outer(f_tilde, [0.0, -1.0])
+    w_max = inp.lipschitz * (lam_c * np.linalg.norm(e_s, axis=1) + np.linalg.norm(e_o, axis=1)) + inp.C_f
+    g = 2.0 * (e_o @ res.P_obs)[:, 2]  # ∂V̇/∂(Δḟ)
+    vdot_e = 2.0 * res.weight_s * np.einsum("ij,jk,ik->i", e_s, res.P_e, de_s)
+    vdot_o = 2.0 * np.einsum("ij,jk,ik->i", e_o, res.P_obs, e_o @ a_o.T) + np.abs(g) * w_max
+    return vdot_e + vdot_o
+
+
+@pytest.mark.parametrize("method", ["literal", "tight"])
+@pytest.mark.parametrize("lip_frac", [0.0, 0.5, 0.95])
+def test_vdot_is_negative_outside_the_ultimate_bound(method, lip_frac):
+    fn = certify_literal if method == "literal" else certify_tight
+    lmax = fn(inputs(lip=0.0)).max_certified_lipschitz
+    inp = inputs(lip=lip_frac * lmax)
+    res = fn(inp)
+    assert res.holds
+    rng = np.random.default_rng(1)
+    n = 20000
+    # directions with wildly different component scales, to reach the observer's stiff directions
+    d = rng.normal(size=(n, 5)) * np.exp(rng.uniform(-8, 8, size=(n, 5)))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = res.ultimate_bound * (1.0 + 1e-6) * np.exp(rng.uniform(0.0, 3.0, size=(n, 1)))
+    pts = d * r
+    vdot = _worst_vdot(res, inp, pts[:, :2], pts[:, 2:])
+    assert np.all(vdot < 0)
+    # and the sublevel bound is no smaller than the decrease-ball radius
+    assert res.ultimate_bound_sublevel >= res.ultimate_bound * (1 - 1e-12)
+
+
+def test_literal_vdot_inequality_of_theorem_1():
+    """V̇ ≤ −α_e‖e_s‖² − α_o‖ẽ‖² + C_o at the reported δ's (random points, worst Δḟ)."""
+    inp = inputs(lip=0.01)
+    res = certify_literal(inp)
+    assert res.holds
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(20000, 5)) * np.exp(rng.uniform(-6, 4, size=(20000, 5)))
+    vdot = _worst_vdot(res, inp, pts[:, :2], pts[:, 2:])
+    rhs = -res.alpha_e * np.sum(pts[:, :2] ** 2, 1) - res.alpha_o * np.sum(pts[:, 2:] ** 2, 1) + res.C_o
+    assert np.all(vdot <= rhs + 1e-9 * np.abs(rhs))
+
+
+# ------------------------------------------------------------------------------------- JSON and CLI
+
+REQUIRED = {"holds", "alpha_e", "alpha_o", "ultimate_bound", "max_certified_lipschitz"}
+
+
+def test_json_dict_has_required_keys_and_is_strict_json():
+    for res in (certify_literal(inputs(lip=0.01)), certify_literal(inputs(lip=0.5)), certify_tight(inputs(lip=0.5))):
+        d = res.to_json_dict()
+        assert REQUIRED <= d.keys()
+        assert isinstance(d["holds"], bool)
+        text = json.dumps(d, allow_nan=False)
+        assert json.loads(text)["method"] == res.method
+
+
+def _parse(argv):
+    from cli import certify
+
+    p = argparse.ArgumentParser()
+    s = p.add_subparsers(dest="cmd")
+    certify.add_parser(s)
+    return certify, p.parse_args(["certify", *argv])
+
+
+@pytest.mark.parametrize(
+    "lip,method,expected",
+    [(0.01, "literal", 0), (0.05, "literal", 1), (0.05, "tight", 0), (0.05, "both", 0), (5.0, "both", 1)],
+)
+def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
+    certify, args = _parse(["--kp", "10", "--kd", "6", "--omega-o", "20", "--lipschitz", str(lip),
+                            "--method", method, "--json"])
+    rc = certify.run(args)
+    out = json.loads(capsys.readouterr().out)
+    assert rc == expected
+    assert REQUIRED <= out.keys()
+    assert out["holds"] == (rc == 0)
+    if method == "both":
+        assert out["literal"]["method"] == "literal" and out["tight"]["method"] == "tight"
+        assert out["holds"] == out["tight"]["holds"]
+
+
+def test_cli_text_report(capsys):
+    certify, args = _parse(["--kp", "10", "--kd", "6", "--omega-o", "20", "--lipschitz", "0.05"])
+    assert certify.run(args) == 0
+    out = capsys.readouterr().out
+    assert "[literal] FAILS" in out and "[tight] HOLDS" in out and "max certified L_N" in out
+
+
+def test_cli_as_subprocess():
+    code = ("import argparse; from cli import certify; p=argparse.ArgumentParser(); s=p.add_subparsers(dest='cmd'); "
+            "certify.add_parser(s); a=p.parse_args(['certify','--kp','10','--kd','6','--omega-o','20',"
+            "'--lipschitz','0.05','--method','literal','--json']); raise SystemExit(certify.run(a))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 1, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["holds"] is False and out["ultimate_bound"] is None
+    assert out["max_certified_lipschitz"] == pytest.approx(0.017695, rel=1e-3)

@@ -1,0 +1,76 @@
+"""Control law and its mapping to a PX4 attitude setpoint."""
+import math
+
+import numpy as np
+import pytest
+
+from neso.control import ControlConfig, PositionController, attitude_from_force, nominal_acceleration
+from neso.rotations import euler_zyx_from_world_from_body, world_from_body_zyx
+from neso.types import Reference, VehicleModel
+from tests.unit.helpers import measurement
+
+
+def test_hover_maps_to_level_attitude_and_thrust_mg():
+    ctrl = PositionController(ControlConfig(vehicle=VehicleModel(mass_kg=1.3, hover_thrust_norm=0.42)))
+    out = ctrl.step(measurement(pos=(0, 0, 1)), Reference(pos_enu_m=np.array([0, 0, 1.0])), np.zeros(3))
+    sp = out.setpoint
+    assert sp.roll_rad == pytest.approx(0, abs=1e-12) and sp.pitch_rad == pytest.approx(0, abs=1e-12)
+    assert sp.thrust_n == pytest.approx(1.3 * 9.81)
+    assert sp.thrust_norm == pytest.approx(0.42)
+    assert np.allclose(out.applied.acc_cmd_enu_mps2, 0, atol=1e-12)
+
+
+def test_disturbance_estimate_is_cancelled():
+    ctrl = PositionController(ControlConfig(force_rate_limit_nps=1e6))
+    out = ctrl.step(measurement(), Reference(pos_enu_m=np.array([0, 0, 1.0])), np.array([0, 0, 1.5]))
+    assert out.setpoint.thrust_n == pytest.approx(1.0 * (9.81 - 1.5))
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.7, -2.5])
+def test_attitude_points_body_z_along_force(yaw):
+    force = np.array([1.2, -0.8, 9.0])
+    thrust, roll, pitch, yaw_out = attitude_from_force(force, yaw)
+    z_body = world_from_body_zyx(roll, pitch, yaw_out)[:, 2]
+    assert thrust == pytest.approx(np.linalg.norm(force))
+    assert np.allclose(z_body * thrust, force)
+    assert yaw_out == pytest.approx(yaw)
+
+
+def test_positive_pitch_accelerates_towards_plus_x_in_enu():
+    _, roll, pitch, _ = attitude_from_force(np.array([1.0, 0.0, 9.81]), 0.0)
+    assert pitch > 0 and roll == pytest.approx(0, abs=1e-12)
+    _, roll, pitch, _ = attitude_from_force(np.array([0.0, 1.0, 9.81]), 0.0)
+    assert roll < 0  # +y (left) needs a negative roll about x forward
+
+
+def test_force_increment_is_saturated_between_samples():
+    cfg = ControlConfig(force_rate_limit_nps=10.0, dt_s=0.02)
+    ctrl = PositionController(cfg)
+    ref = Reference(pos_enu_m=np.array([0, 0, 5.0]))  # a 4 m step asks for a large force
+    prev = ctrl.force_prev_enu_n.copy()
+    for _ in range(5):
+        out = ctrl.step(measurement(), ref, np.zeros(3))
+        assert np.all(np.abs(out.force_enu_n - prev) <= 10.0 * 0.02 + 1e-12)
+        prev = out.force_enu_n
+
+
+def test_tilt_is_limited_and_nan_is_not_passed_on():
+    cfg = ControlConfig(force_rate_limit_nps=1e6, max_tilt_rad=math.radians(20))
+    ctrl = PositionController(cfg)
+    out = ctrl.step(measurement(), Reference(pos_enu_m=np.array([50.0, 0, 1.0])), np.zeros(3))
+    tilt = math.acos(world_from_body_zyx(out.setpoint.roll_rad, out.setpoint.pitch_rad, 0)[2, 2])
+    assert tilt <= math.radians(20) + 1e-9
+    out2 = ctrl.step(measurement(), Reference(pos_enu_m=np.array([0, 0, 1.0])), np.array([np.nan, 0, 0]))
+    assert all(math.isfinite(v) for v in (out2.setpoint.roll_rad, out2.setpoint.pitch_rad, out2.setpoint.thrust_norm))
+
+
+def test_nominal_acceleration_inverts_the_setpoint():
+    ctrl = PositionController(ControlConfig(force_rate_limit_nps=1e6))
+    out = ctrl.step(measurement(), Reference(pos_enu_m=np.array([0.1, -0.2, 1.3])), np.zeros(3))
+    acc = nominal_acceleration(out.setpoint, ctrl.config.vehicle)
+    assert np.allclose(acc, out.force_enu_n / 1.0 - np.array([0, 0, 9.81]), atol=1e-9)
+
+
+def test_euler_round_trip():
+    for r, p, y in [(0.1, -0.2, 0.3), (-0.5, 0.4, -2.0)]:
+        assert np.allclose(euler_zyx_from_world_from_body(world_from_body_zyx(r, p, y)), (r, p, y))
