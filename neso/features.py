@@ -35,12 +35,24 @@ def label_kind_for_pathway(pathway: str) -> str:
     raise ValueError(f"a flight under pathway {pathway!r} yields no training label: f̂ there is not an observer estimate")
 
 
-def acceleration_labels(vel_mps: np.ndarray, acc_cmd_mps2: np.ndarray, dt_s: float) -> np.ndarray:
+def acceleration_labels(vel_mps: np.ndarray, acc_cmd_mps2: np.ndarray, dt_s: float, *, cutoff_hz: float | None = 5.0) -> np.ndarray:
     """Neural-Lander-style labels: measured minus commanded z acceleration.
 
     ``vel_mps`` (N,) measured z velocity, ``acc_cmd_mps2`` (N,) the nominal acceleration the
     command applied over [k, k+1). The measured acceleration is the forward difference
     (v_{k+1} − v_k)/Δ, so the result has N − 1 rows (the last sample has no successor).
+
+    Labels are made offline, so the velocity is first low-passed with a zero-phase
+    2nd-order Butterworth at ``cutoff_hz`` (no lag); ``None`` keeps the raw difference. Raw
+    differences of motion-capture velocity are noise-dominated (σ ≈ 5 m/s² here) and a
+    network trained on them made PD+NN diverge — the noise the paper avoids by not using
+    acceleration at all.
     """
-    acc_meas = np.diff(vel_mps) / dt_s
-    return acc_meas - acc_cmd_mps2[:-1]
+    vel = np.asarray(vel_mps, dtype=float)
+    if cutoff_hz is not None:
+        from scipy.signal import butter, filtfilt
+
+        b, a = butter(2, cutoff_hz / (0.5 / dt_s))
+        vel = filtfilt(b, a, vel)
+    acc_meas = np.diff(vel) / dt_s
+    return acc_meas - np.asarray(acc_cmd_mps2)[:-1]
