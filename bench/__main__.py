@@ -53,11 +53,9 @@ def main(argv: list[str]) -> int:
         t0 = time.perf_counter()
         run = run_paper(PaperConfig(trials=5), log=lambda *_: None)
         total = time.perf_counter() - t0
-        flights = 3 + 4 * 5 * 2 + 3 * 5 * 2 + 1 + 6 * 5
         rows.append(("neso experiment paper --trials 5 (target < 60 s, limit 180 s)", f"{total:.1f} s"))
         for stage, secs in run.details["timing_s"].items():
             rows.append((f"  stage {stage}", f"{secs:.1f} s"))
-        rows.append(("  flights flown (approx.)", str(flights)))
     width = max(len(r[0]) for r in rows)
     print(f"{'benchmark'.ljust(width)}  result")
     print(f"{'-' * width}  ------")
