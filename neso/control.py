@@ -104,6 +104,7 @@ class PositionController:
         self._max_step_n = config.force_rate_limit_nps * config.dt_s
         self._min_up_n = config.min_thrust_fraction * config.vehicle.hover_thrust_n
         self.force_prev_enu_n = hover_force(config.vehicle)
+        self._gravity_enu = np.array([0.0, 0.0, config.vehicle.gravity_mps2])
 
     def reset(self, force_enu_n: np.ndarray | None = None) -> None:
         self.force_prev_enu_n = hover_force(self.config.vehicle) if force_enu_n is None else np.array(force_enu_n, float)
@@ -120,7 +121,7 @@ class PositionController:
             + self._kd * (ref.vel_enu_mps - meas.vel_enu_mps)
             - f_hat_mps2
         )
-        force = vehicle.mass_kg * (acc_desired + np.array([0.0, 0.0, vehicle.gravity_mps2]))
+        force = vehicle.mass_kg * (acc_desired + self._gravity_enu)
         if not np.all(np.isfinite(force)):
             force = self.force_prev_enu_n.copy()
         step = np.clip(force - self.force_prev_enu_n, -self._max_step_n, self._max_step_n)
@@ -131,9 +132,11 @@ class PositionController:
     def _output(self, force: np.ndarray, yaw_rad: float, acc_desired: np.ndarray) -> ControlOutput:
         vehicle = self.config.vehicle
         thrust_n, roll, pitch, yaw = attitude_from_force(force, yaw_rad)
-        setpoint = AttitudeSetpoint(
-            roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
-            thrust_norm=normalised_thrust(thrust_n, vehicle), thrust_n=thrust_n,
-        )
-        applied = AppliedControl(acc_cmd_enu_mps2=nominal_acceleration(setpoint, vehicle), thrust_n=thrust_n)
+        thrust_norm = normalised_thrust(thrust_n, vehicle)
+        setpoint = AttitudeSetpoint(roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, thrust_norm=thrust_norm, thrust_n=thrust_n)
+        # what nominal_acceleration(setpoint) gives, without rebuilding R_d: the body z axis is
+        # force/‖force‖ and the thrust sent is the normalised one mapped back (clamping included)
+        thrust_sent_n = thrust_norm / vehicle.hover_thrust_norm * vehicle.hover_thrust_n
+        acc_cmd = force * (thrust_sent_n / (thrust_n * vehicle.mass_kg)) - self._gravity_enu
+        applied = AppliedControl(acc_cmd_enu_mps2=acc_cmd, thrust_n=thrust_n)
         return ControlOutput(setpoint=setpoint, applied=applied, force_enu_n=force, acc_desired_enu_mps2=acc_desired)

@@ -12,11 +12,6 @@ from neso.types import StateMeasurement
 FEATURE_NAMES = ("pos_z_m", "vel_z_mps", "thrust_prev_n", "roll_rad", "pitch_rad")
 N_FEATURES = len(FEATURE_NAMES)
 
-# Label kinds a dataset may hold (the estimate that produced y_k):
-#   eso_teacher — x̂3 of a plain ESO (pathway "eso"), for a first network;
-#   tdr         — f_N + Δf̂ under Neural-ESO, for Total Disturbance Retraining;
-#   acceleration — measured acceleration minus the commanded one (PD+NN baseline only).
-LABEL_KINDS = ("eso_teacher", "tdr", "acceleration")
 
 
 def network_features(meas: StateMeasurement, thrust_prev_n: float) -> np.ndarray:
@@ -24,15 +19,6 @@ def network_features(meas: StateMeasurement, thrust_prev_n: float) -> np.ndarray
     return np.array(
         [meas.pos_enu_m[2], meas.vel_enu_mps[2], thrust_prev_n, meas.roll_rad, meas.pitch_rad]
     )
-
-
-def label_kind_for_pathway(pathway: str) -> str:
-    """Which label a flight under ``pathway`` yields when its f̂ is recorded."""
-    if pathway == "eso":
-        return "eso_teacher"
-    if pathway == "neural_eso":
-        return "tdr"
-    raise ValueError(f"a flight under pathway {pathway!r} yields no training label: f̂ there is not an observer estimate")
 
 
 def acceleration_labels(vel_mps: np.ndarray, acc_cmd_mps2: np.ndarray, dt_s: float, *, cutoff_hz: float | None = 5.0) -> np.ndarray:
@@ -50,7 +36,7 @@ def acceleration_labels(vel_mps: np.ndarray, acc_cmd_mps2: np.ndarray, dt_s: flo
     """
     vel = np.asarray(vel_mps, dtype=float)
     if cutoff_hz is not None:
-        from scipy.signal import butter, filtfilt
+        from scipy.signal import butter, filtfilt  # offline only: keep it out of the loop's start-up
 
         b, a = butter(2, cutoff_hz / (0.5 / dt_s))
         vel = filtfilt(b, a, vel)

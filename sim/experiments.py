@@ -45,8 +45,10 @@ class PaperConfig:
     tdr_cycles: int = 5  # 5 cycles × 6 s = the paper's 30 s of OOD data
     epochs: int = 100
     workers: int = 0  # 0: one per core
-    landing: Landing = field(default_factory=Landing)
-    lemniscate: Lemniscate = field(default_factory=Lemniscate)
+    landing: Landing = field(
+        default_factory=lambda: Landing(end_height_m=make_scenario("nominal_landing").reference_height_m))
+    lemniscate: Lemniscate = field(
+        default_factory=lambda: Lemniscate(height_m=make_scenario("lemniscate_near_ground").reference_height_m))
     settle_after_descent_s: float = 2.0  # steady-state window starts this long after the descent
     settling_band_m: float = 0.01
     seed: int = 0
@@ -85,6 +87,15 @@ class _Pool:
         if self._pool is None:
             return [run_flight(t) for t in tasks]
         return list(self._pool.map(run_flight, tasks))
+
+    def map_groups(self, groups: list[list[FlightTask]]) -> list[list[FlightLog]]:
+        """Fly every group's tasks in one pool pass; the logs come back grouped as given."""
+        flat = self.map([t for group in groups for t in group])
+        out, start = [], 0
+        for group in groups:
+            out.append(flat[start:start + len(group)])
+            start += len(group)
+        return out
 
     def close(self) -> None:
         if self._pool is not None:
@@ -201,14 +212,13 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
 
         log("L_N ablation")
         ablation = {"metric": "steady_state_abs_z_error_cm", "nominal": {}, "ood": {}}
-        for key, scenario, exp in (("nominal", "nominal_landing", "nominal_landing"), ("ood", "ood_slope", "ood_slope")):
+        for key, scenario in (("nominal", "nominal_landing"), ("ood", "ood_slope")):
             others = [b for b in config.lipschitz_values if b != config.base_lipschitz]
-            flights = pool.map([t for b in others for t in tasks(scenario, "neural_eso", {"base": nets[b]}, config.landing)])
-            for i, bound in enumerate(others):
-                chunk = flights[i * len(seeds):(i + 1) * len(seeds)]
-                ablation[key][str(bound)] = summarise([landing_metrics(f, config)[0] for f in chunk])
+            groups = pool.map_groups([tasks(scenario, "neural_eso", {"base": nets[b]}, config.landing) for b in others])
+            for bound, flights in zip(others, groups):
+                ablation[key][str(bound)] = summarise([landing_metrics(f, config)[0] for f in flights])
             if config.base_lipschitz in config.lipschitz_values:
-                ablation[key][str(config.base_lipschitz)] = results[exp]["methods"]["neural_eso"]
+                ablation[key][str(config.base_lipschitz)] = results[scenario]["methods"]["neural_eso"]
             ablation[key] = {str(b): ablation[key][str(b)] for b in config.lipschitz_values}
         results["lipschitz_ablation"] = ablation
         t0 = tick("lipschitz_ablation", t0)
@@ -222,13 +232,11 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
         details["networks"]["tdr"] = _network_details(tdr_res)
         details["tdr_samples"] = int(len(y_r))
         nets3 = dict(base, tdr=tdr_res.network)
-        flights = pool.map([t for m in LEMNISCATE_METHODS for t in tasks("lemniscate_near_ground", m, nets3, config.lemniscate)])
+        groups = pool.map_groups([tasks("lemniscate_near_ground", m, nets3, config.lemniscate) for m in LEMNISCATE_METHODS])
         lem = {"metric": "z_rmse_cm", "methods": {}}
-        logs["lemniscate_near_ground"] = {}
-        for i, method in enumerate(LEMNISCATE_METHODS):
-            chunk = flights[i * len(seeds):(i + 1) * len(seeds)]
-            lem["methods"][method] = summarise([lemniscate_rmse_cm(f, config) for f in chunk])
-            logs["lemniscate_near_ground"][method] = chunk
+        logs["lemniscate_near_ground"] = dict(zip(LEMNISCATE_METHODS, groups))
+        for method, flights in logs["lemniscate_near_ground"].items():
+            lem["methods"][method] = summarise([lemniscate_rmse_cm(f, config) for f in flights])
         results["lemniscate_near_ground"] = lem
         tick("lemniscate_near_ground", t0)
     finally:
@@ -238,17 +246,13 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
 
 
 def _landing_experiment(pool, tasks, scenario, methods, networks, config, details):
-    flights = pool.map([t for m in methods for t in tasks(scenario, m, networks, config.landing)])
-    n = config.trials
+    logs = dict(zip(methods, pool.map_groups([tasks(scenario, m, networks, config.landing) for m in methods])))
     out = {"metric": "steady_state_abs_z_error_cm", "methods": {}}
-    logs = {}
     details["settling_time_s"][scenario] = {}
-    for i, method in enumerate(methods):
-        chunk = flights[i * n:(i + 1) * n]
-        metrics = [landing_metrics(f, config) for f in chunk]
+    for method, flights in logs.items():
+        metrics = [landing_metrics(f, config) for f in flights]
         out["methods"][method] = summarise([m[0] for m in metrics])
         details["settling_time_s"][scenario][method] = summarise([m[1] for m in metrics])
-        logs[method] = chunk
     return out, logs
 
 

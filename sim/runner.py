@@ -17,6 +17,7 @@ import numpy as np
 
 from neso.control import ControlConfig, PositionController
 from neso.estimator import DisturbanceEstimator
+from neso.features import N_FEATURES
 from sim.quadrotor import QuadrotorSim, SimConfig
 
 
@@ -67,7 +68,7 @@ def fly(
     out = controller.hover_output(ref0.yaw_rad)
     cols = {name: np.full((n, w), np.nan) for name, w in (
         ("pos_true_m", 3), ("pos_meas_m", 3), ("vel_meas_mps", 3), ("pos_ref_m", 3), ("f_hat", 3),
-        ("f_n", 3), ("delta_f_hat", 3), ("z", 5), ("acc_cmd_mps2", 3), ("f_true", 3))}
+        ("f_n", 3), ("delta_f_hat", 3), ("z", N_FEATURES), ("acc_cmd_mps2", 3), ("f_true", 3))}
     thrust = np.full(n, np.nan)
     t = np.full(n, np.nan)
     diverged, reason = False, ""

@@ -76,12 +76,11 @@ class DrydenGusts:
     """Seeded gust generator. ``step(height_m, speed_mps)`` advances by ``dt_s`` and returns the
     gust velocity (wx, wy, wz) in m/s, world ENU, as plain floats (hot path)."""
 
-    __slots__ = ("_cfg", "_rng", "_buf", "_i", "_a", "_b", "_xi", "_dt_s")
+    __slots__ = ("_cfg", "_rng", "_buf", "_i", "_a", "_b", "_xi")
 
     def __init__(self, config: TurbulenceConfig, dt_s: float, rng: np.random.Generator) -> None:
         self._cfg = config
         self._rng = rng
-        self._dt_s = dt_s
         a_h = math.exp(-dt_s / config.tau_horizontal_s)
         a_v = math.exp(-dt_s / config.tau_vertical_s)
         self._a = (a_h, a_h, a_v)

@@ -2,6 +2,7 @@
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,8 +12,8 @@ from neso.control import ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
 from neso.methods import METHODS, build_estimator
-from neso.trajectories import Hover, Landing
-from sim.experiments import FlightTask, PaperConfig, run_flight, teacher_dataset
+from neso.trajectories import Landing
+from sim.experiments import FlightTask, run_flight, teacher_dataset
 from sim.runner import fly
 from sim.scenarios import make_scenario
 
@@ -57,13 +58,13 @@ def test_certified_setting_stays_inside_its_ultimate_bound(base_network):
     half the tight certificate's limit: the simulated error state E = [e, ė, x̃1, x̃2, f̃] must stay
     within the stated eventual bound after the initial transient."""
     control = ControlConfig()
-    inputs = CertificateInputs(kp=control.kp[2], kd=control.kd[2], omega_o=15.0, lipschitz=0.0)
+    inputs = CertificateInputs(kp=control.kp[2], kd=control.kd[2], omega_o=EST.eso.omega_o_rps, lipschitz=0.0)
     l_max = max_certified_lipschitz(inputs, "tight")
     l_phys = 0.5 * l_max
     ratio = base_network.certified_lipschitz_physical() / base_network.certified_lipschitz_normalised()
     net = base_network.scaled_to_bound(l_phys / ratio)
     assert net.certified_lipschitz_physical() <= l_phys * (1 + 1e-9)
-    cert = certify_tight(CertificateInputs(kp=10.0, kd=6.0, omega_o=15.0, lipschitz=l_phys))
+    cert = certify_tight(replace(inputs, lipschitz=l_phys))
     assert cert.holds
 
     estimator = build_estimator("neural_eso", EST, {"base": net})
