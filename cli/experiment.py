@@ -12,6 +12,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--json", type=Path, help="write the results in the documented JSON shape")
     p.add_argument("--details", type=Path, help="write settling times, network certificates and timings as JSON")
     p.add_argument("--plots", type=Path, help="directory for PNG figures (paper Fig. 3, 5, 6, 7 analogues)")
+    p.add_argument("--networks-out", type=Path, help="directory to save the trained networks in (safetensors)")
     p.add_argument("--omega-o", type=float, default=None, help="observer bandwidth rad/s (default 15)")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default 100, as the paper)")
     p.add_argument("--workers", type=int, default=0, help="flight processes (default: one per core)")
@@ -40,6 +41,13 @@ def run(args) -> int:
         print(f"results: {args.json}")
     if args.details:
         args.details.write_text(json.dumps(run_.details, indent=2))
+    if args.networks_out:
+        from neso.netfile import save_network
+
+        args.networks_out.mkdir(parents=True, exist_ok=True)
+        for stem, net in run_.networks.items():
+            save_network(args.networks_out / f"{stem}.safetensors", net)
+            print(f"network: {args.networks_out / stem}.safetensors")
     if args.plots:
         from cli.plots import write_plots
 

@@ -7,7 +7,14 @@ import importlib
 import sys
 
 # sub-command → module in this package with add_parser(subparsers) and run(args) -> int
-SUBCOMMANDS = {"certify": "cli.certify", "experiment": "cli.experiment"}
+SUBCOMMANDS = {
+    "certify": "cli.certify",
+    "experiment": "cli.experiment",
+    "up": "cli.up",
+    "run": "cli.run",
+    "params": "cli.params",
+    "cmd": "cli.cmd",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:

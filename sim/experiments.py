@@ -161,6 +161,7 @@ class PaperRun:
     details: dict
     logs: dict  # experiment → method → [FlightLog] (for plots)
     seconds: float
+    networks: dict = field(default_factory=dict)  # file stem → LipschitzMLP (base-L<b>, acceleration, tdr)
 
 
 def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
@@ -242,7 +243,9 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
     finally:
         pool.close()
     seconds = time.perf_counter() - started
-    return PaperRun(results=results, details=details, logs=logs, seconds=seconds)
+    networks = {f"base-L{b:g}": net for b, net in nets.items()}
+    networks.update(acceleration=acc_res.network, tdr=tdr_res.network)
+    return PaperRun(results=results, details=details, logs=logs, seconds=seconds, networks=networks)
 
 
 def _landing_experiment(pool, tasks, scenario, methods, networks, config, details):

@@ -1,0 +1,77 @@
+"""``neso up``: the whole system on this machine, every role its own process, from the declared graph."""
+from __future__ import annotations
+
+from runtime.bus import DEFAULT_HUB
+from runtime.graph import ROLES
+from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
+
+
+def add_parser(subparsers) -> None:
+    from neso.mission import COMMANDS
+    from sim.scenarios import SCENARIOS
+
+    p = subparsers.add_parser("up", help="start the hub and every service (simulator source) and supervise them")
+    p.add_argument("--scenario", default="nominal_landing", choices=sorted(SCENARIOS))
+    p.add_argument("--mission", default="hover", choices=("idle",) + COMMANDS, help="mission flown from the start")
+    p.add_argument("--start", default="scenario", choices=("scenario", "ground"), help="start pose of the vehicle")
+    p.add_argument("--lockstep", action="store_true", help="deterministic: the sim waits for each setpoint")
+    p.add_argument("--duration", type=float, default=0.0, help="seconds of flight, then stop (0: until Ctrl-C)")
+    p.add_argument("--rate", type=float, default=50.0, help="control rate Hz")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--network", default=None, help="network file (default networks/base-L1.safetensors)")
+    p.add_argument("--pathway", default="neural_eso", choices=("neural_eso", "eso", "nn", "none"))
+    p.add_argument("--vehicle", action="append", default=None, help="vehicle name, repeatable (default uav1)")
+    p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
+    p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
+    p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
+
+
+def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
+    """The ``neso run`` command line of one role for one vehicle."""
+    common = ["--vehicle", vehicle, "--connect", args.hub]
+    if args.low_latency:
+        common.append("--low-latency")
+    if args.lockstep:
+        common.append("--lockstep")
+    specific: list[str] = []
+    if role == "source":
+        wait_for = ",".join(["estimator", "controller"] + [s for s in args.wait_for.split(",") if s])
+        specific = ["--scenario", args.scenario, "--seed", str(args.seed + index), "--rate", str(args.rate),
+                    "--start", args.start, "--duration", str(args.duration), "--wait-for", wait_for]
+    elif role == "estimator":
+        specific = ["--pathway", args.pathway, "--rate", str(args.rate)]
+        if args.network is not None:
+            specific += ["--network", args.network]
+    elif role == "controller":
+        specific = ["--mission", args.mission, "--rate", str(args.rate)]
+    return python_module_argv("cli.main", "run", role, *common, *specific)
+
+
+def build_specs(args) -> list[ProcessSpec]:
+    vehicles = args.vehicle or ["uav1"]
+    specs = []
+    for role in ROLES:
+        if role.bus_role == "router":
+            argv = python_module_argv("cli.main", "run", role.name, "--listen", args.hub)
+            if args.low_latency:
+                argv += ("--low-latency",)
+            specs.append(ProcessSpec(role.name, argv))
+            continue
+        for i, vehicle in enumerate(vehicles):
+            name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
+            finishes = role.name == "source" and args.duration > 0
+            specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes))
+    return specs
+
+
+def run(args) -> int:
+    vehicles = args.vehicle or ["uav1"]
+    supervisor = Supervisor(build_specs(args), echo=lambda line: print(line, flush=True))
+    print(f"neso up: hub {args.hub}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
+          f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
+    print("  live parameters:  neso params get estimator | neso params set estimator pathway=eso lipschitz_bound=0.5",
+          flush=True)
+    print("  missions:         neso cmd controller landing_test | takeoff | hover | lemniscate | land", flush=True)
+    print("  stop:             Ctrl-C", flush=True)
+    supervisor.start()
+    return supervisor.run()

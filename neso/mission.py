@@ -1,0 +1,160 @@
+"""Missions: operator commands turned into a continuous reference (ENU, m, s).
+
+Commands: ``takeoff`` (straight up to ``takeoff_height_m``), ``hover`` (hold the current
+reference), ``landing_test`` (the paper's Experiment 1 at the arena origin: from
+``landing_start_height_m`` descend to ``landing_end_height_m`` and hold), ``lemniscate``
+(Experiment 3's figure eight around the origin at ``lemniscate_height_m``), ``land`` (down to
+the ground, then idle). A segment that starts away from where the reference is goes there
+first with a quintic transit, so the reference never jumps. Time is the state source's
+clock; a command takes effect at the sample it is applied to.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from neso.trajectories import Landing, Lemniscate
+from neso.types import Reference
+
+COMMANDS = ("takeoff", "hover", "landing_test", "lemniscate", "land")
+
+
+@dataclass(frozen=True, slots=True)
+class MissionConfig:
+    """Where missions fly. ``origin_xy_m``: the arena point the tests happen over."""
+
+    origin_xy_m: tuple[float, float] = (0.0, 0.0)
+    takeoff_height_m: float = 1.0
+    landing_start_height_m: float = 1.0
+    landing_end_height_m: float = 0.1
+    lemniscate_height_m: float = 0.25
+    lemniscate_cycles: int = 5
+    transit_speed_mps: float = 0.4  # mean speed of a transit or take-off
+    land_speed_mps: float = 0.3
+    at_point_tol_m: float = 0.02  # closer than this, no transit is flown
+    landed_height_m: float = 0.04  # measured height under which a landing is complete
+
+
+@dataclass(frozen=True, slots=True)
+class _Transit:
+    """Quintic straight line from ``a`` to ``b`` over ``duration_s``, then hold ``b``."""
+
+    a: tuple[float, float, float]
+    b: tuple[float, float, float]
+    duration_s: float
+
+    def sample(self, t_s: float) -> Reference:
+        s = min(1.0, max(0.0, t_s / self.duration_s))
+        p = s**3 * (10 - 15 * s + 6 * s * s)
+        dp = 30 * s * s * (1 - s) ** 2 / self.duration_s
+        ddp = 60 * s * (1 - s) * (1 - 2 * s) / self.duration_s**2
+        a, d = np.array(self.a), np.array(self.b) - np.array(self.a)
+        return Reference(pos_enu_m=a + d * p, vel_enu_mps=d * dp, acc_enu_mps2=d * ddp)
+
+
+@dataclass(frozen=True, slots=True)
+class _Offset:
+    """``trajectory`` translated by ``offset_m`` (its sample at time 0 sits there)."""
+
+    trajectory: object
+    offset_m: tuple[float, float, float]
+
+    def sample(self, t_s: float) -> Reference:
+        r = self.trajectory.sample(t_s)
+        return Reference(pos_enu_m=r.pos_enu_m + np.array(self.offset_m), vel_enu_mps=r.vel_enu_mps,
+                         acc_enu_mps2=r.acc_enu_mps2, yaw_rad=r.yaw_rad)
+
+
+@dataclass(frozen=True, slots=True)
+class _Hold:
+    pos_enu_m: tuple[float, float, float]
+
+    def sample(self, t_s: float) -> Reference:
+        return Reference(pos_enu_m=np.array(self.pos_enu_m))
+
+
+@dataclass(slots=True)
+class _Segment:
+    name: str
+    trajectory: object
+    start_s: float
+    duration_s: float  # math.inf: holds until replaced
+
+
+@dataclass
+class Mission:
+    """The reference generator: :meth:`command` queues segments, :meth:`reference` samples."""
+
+    config: MissionConfig = field(default_factory=MissionConfig)
+    idle: bool = True  # on the ground, motors idle: no reference to track
+    _segments: list[_Segment] = field(default_factory=list)
+    _last: Reference | None = None
+    segment: str = "idle"
+
+    def start(self, name: str, t_s: float, pos_enu_m: np.ndarray) -> None:
+        """Begin command ``name`` at ``t_s`` from ``pos_enu_m`` (the current reference, or the
+        vehicle's position when nothing was tracked yet)."""
+        if name not in COMMANDS:
+            raise ValueError(f"unknown mission command {name!r}; choose one of {COMMANDS}")
+        c = self.config
+        here = tuple(float(v) for v in (self._last.pos_enu_m if self._last is not None and not self.idle else pos_enu_m))
+        ox, oy = c.origin_xy_m
+        self._segments = []
+        self.idle = False
+        if name == "hover":
+            self._append("hover", _Hold(here), t_s, math.inf)
+        elif name == "takeoff":
+            top = (here[0], here[1], c.takeoff_height_m)
+            t = self._transit("takeoff", here, top, t_s)
+            self._append("hover", _Hold(top), t, math.inf)
+        elif name == "landing_test":
+            start = (ox, oy, c.landing_start_height_m)
+            t = self._transit("transit", here, start, t_s)
+            landing = Landing(start_height_m=c.landing_start_height_m, end_height_m=c.landing_end_height_m,
+                              xy_m=(ox, oy))
+            self._append("landing_test", landing, t, landing.duration_s)
+            self._append("hover", _Hold((ox, oy, c.landing_end_height_m)), t + landing.duration_s, math.inf)
+        elif name == "lemniscate":
+            start = (ox, oy, c.lemniscate_height_m)
+            t = self._transit("transit", here, start, t_s)
+            lem = Lemniscate(height_m=c.lemniscate_height_m, cycles=c.lemniscate_cycles)
+            self._append("lemniscate", _Offset(lem, (ox, oy, 0.0)), t, lem.duration_s)
+            self._append("hover", _Hold(start), t + lem.duration_s, math.inf)
+        elif name == "land":
+            ground = (here[0], here[1], -0.05)  # a little below the floor so contact is certain
+            duration = max(1.0, (here[2] - ground[2]) / c.land_speed_mps)
+            self._append("land", _Transit(here, ground, duration), t_s, math.inf)
+
+    def _append(self, name: str, trajectory, start_s: float, duration_s: float) -> None:
+        self._segments.append(_Segment(name, trajectory, start_s, duration_s))
+
+    def _transit(self, name: str, a: tuple, b: tuple, t_s: float) -> float:
+        """Queue a transit a → b if they differ; the time it ends."""
+        distance = math.dist(a, b)
+        if distance <= self.config.at_point_tol_m:
+            return t_s
+        duration = max(1.0, distance / self.config.transit_speed_mps)
+        self._append(name, _Transit(a, b, duration), t_s, duration)
+        return t_s + duration
+
+    def reference(self, t_s: float) -> Reference | None:
+        """The reference at ``t_s``; ``None`` while idle."""
+        if self.idle or not self._segments:
+            self.segment = "idle"
+            return None
+        current = self._segments[0]
+        for seg in self._segments:
+            if seg.start_s <= t_s:
+                current = seg
+        self.segment = current.name
+        self._last = current.trajectory.sample(t_s - current.start_s)
+        return self._last
+
+    def landed(self, measured_height_m: float) -> bool:
+        """True once a ``land`` reached the floor: the caller idles the motors."""
+        if self.segment == "land" and measured_height_m < self.config.landed_height_m:
+            self.idle, self._segments, self.segment = True, [], "idle"
+            return True
+        return False

@@ -1,0 +1,87 @@
+"""Zenoh session configuration: one machine by default, several by override.
+
+The embedded default: a hub (a session in ``router`` mode listening on
+``tcp/127.0.0.1:7447``) and every service a ``peer`` that connects to it and listens on
+``tcp/127.0.0.1:0`` so other peers can link to it directly (they do, and keep talking if
+the hub goes). Multicast scouting is off: the default would find strangers on the LAN and
+containers have none. Connect retries start at 100 ms and cap at 500 ms, so a service
+started before the hub links up within half a second of it.
+
+For several machines: give ``connect`` (the hub's or a ``zenohd`` router's endpoint) and
+``listen`` (an address the other machines can reach), or a whole Zenoh config file
+(``config_file``), whose settings the explicit ones then override.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+DEFAULT_HUB = "tcp/127.0.0.1:7447"
+MODES = ("peer", "client", "router")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """Where and how a process joins the bus.
+
+    ``connect``/``listen``: Zenoh endpoints (``tcp/host:port``). ``mode``: ``peer`` (services),
+    ``router`` (the hub), ``client`` (a tool that only talks through a router).
+    ``config_file``: a Zenoh JSON5 config loaded first. ``low_latency``: Zenoh's
+    ``transport/unicast/lowlatency`` (every session on the bus must agree; QoS off).
+    """
+
+    connect: tuple[str, ...] = (DEFAULT_HUB,)
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
+    mode: str = "peer"
+    config_file: str | None = None
+    low_latency: bool = False
+    retry_period_init_ms: int = 100
+    retry_period_max_ms: int = 500
+    extra: dict = field(default_factory=dict)  # raw "path": json-value settings, applied last
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        for endpoint in (*self.connect, *self.listen):
+            if "/" not in endpoint:
+                raise ValueError(f"endpoint {endpoint!r} must look like tcp/127.0.0.1:7447")
+
+    def settings(self) -> dict[str, object]:
+        """The config path → value pairs this applies on top of Zenoh's defaults (or the file)."""
+        out: dict[str, object] = {
+            "mode": self.mode,
+            "scouting/multicast/enabled": False,
+            "connect/endpoints": list(self.connect),
+            "listen/endpoints": list(self.listen),
+            "connect/retry": {
+                "period_init_ms": self.retry_period_init_ms,
+                "period_max_ms": self.retry_period_max_ms,
+                "period_increase_factor": 2,
+            },
+        }
+        if self.low_latency:
+            out["transport/unicast/lowlatency"] = True
+            out["transport/unicast/qos/enabled"] = False
+        out.update(self.extra)
+        return out
+
+    def zenoh_config(self):
+        import zenoh
+
+        conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        for path, value in self.settings().items():
+            conf.insert_json5(path, json.dumps(value))
+        return conf
+
+
+def hub_config(endpoint: str = DEFAULT_HUB, **overrides) -> BusConfig:
+    """The hub: a router listening on ``endpoint`` and connecting to nothing."""
+    return BusConfig(connect=(), listen=(endpoint,), mode="router", **overrides)
+
+
+def open_session(config: BusConfig):
+    """A Zenoh session for ``config``. Close it (``with`` or ``.close()``): a process whose
+    session is never closed can hang at interpreter exit."""
+    import zenoh
+
+    return zenoh.open(config.zenoh_config())

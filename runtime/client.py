@@ -1,0 +1,32 @@
+"""Asking services things from outside: parameter get/set and commands, as one-shot queries."""
+from __future__ import annotations
+
+from runtime.schema import CommandReply, CommandRequest, Keys, ParamReply, ParamRequest, SchemaError
+
+
+class ServiceUnavailable(RuntimeError):
+    """No reply from the service (not running, or not reachable on this bus)."""
+
+
+def _query(session, key: str, payload: bytes, reply_type, timeout_s: float):
+    for reply in session.get(key, payload=payload, timeout=timeout_s):
+        data = reply.ok.payload.to_bytes() if reply.ok is not None else reply.err.payload.to_bytes()
+        try:
+            return reply_type.from_bytes(data)
+        except SchemaError as exc:
+            raise ServiceUnavailable(f"{key}: unreadable reply ({exc})") from None
+    raise ServiceUnavailable(f"no reply on {key} within {timeout_s:g} s: is the service running?")
+
+
+def get_params(session, keys: Keys, service: str, timeout_s: float = 2.0) -> ParamReply:
+    return _query(session, keys.param(service), ParamRequest(op="get").to_bytes(), ParamReply, timeout_s)
+
+
+def set_params(session, keys: Keys, service: str, values: dict, timeout_s: float = 2.0) -> ParamReply:
+    return _query(session, keys.param(service), ParamRequest(op="set", values=values).to_bytes(), ParamReply, timeout_s)
+
+
+def command(session, keys: Keys, service: str, name: str, args: dict | None = None,
+            timeout_s: float = 2.0) -> CommandReply:
+    return _query(session, keys.cmd(service), CommandRequest(name=name, args=args or {}).to_bytes(), CommandReply,
+                  timeout_s)

@@ -1,0 +1,70 @@
+"""The service graph, declared once: every role, what it publishes and subscribes, and how it runs.
+
+The launcher starts these roles in this order, a node may only publish or subscribe what its
+role declares here (:class:`runtime.node.Node` enforces it), and tests check that every
+subscription has exactly one publisher of the same message type and that
+``docker-compose.yml`` has one container per role.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from runtime.schema import TOPICS, Message
+
+
+@dataclass(frozen=True)
+class Role:
+    """One process. ``publishes``/``subscribes``: topic → message type (see ``runtime.schema``).
+    ``module`` has ``add_arguments(parser)`` and ``run(args, bus) -> int``."""
+
+    name: str
+    module: str
+    description: str
+    publishes: dict[str, type[Message]]
+    subscribes: dict[str, type[Message]]
+    bus_role: str = "peer"  # "router" for the hub
+
+
+def _topics(*names: str) -> dict[str, type[Message]]:
+    return {name: TOPICS[name] for name in names}
+
+
+ROLES: tuple[Role, ...] = (
+    Role("hub", "services.hub", "Zenoh router every peer connects to (zenohd in containers)",
+         publishes={}, subscribes={}, bus_role="router"),
+    Role("source", "services.source", "state source: simulator (real time or lockstep) or motion capture",
+         publishes=_topics("state", "truth"), subscribes=_topics("setpoint")),
+    Role("estimator", "services.estimator", "Neural-ESO: state + last setpoint → f̂ = f_N + Δf̂",
+         publishes=_topics("estimate"), subscribes=_topics("state", "setpoint")),
+    Role("controller", "services.controller", "mission + state + f̂ → attitude setpoint (local ESO if f̂ goes stale)",
+         publishes=_topics("setpoint", "reference"), subscribes=_topics("state", "estimate")),
+)
+
+GRAPH: dict[str, Role] = {role.name: role for role in ROLES}
+
+
+def role(name: str) -> Role:
+    try:
+        return GRAPH[name]
+    except KeyError:
+        raise KeyError(f"unknown service {name!r}; known: {list(GRAPH)}") from None
+
+
+def check_graph(roles: tuple[Role, ...] = ROLES) -> list[str]:
+    """Every defect of the declaration (empty if sound): a subscription without exactly one
+    publisher, or a type that disagrees with the schema."""
+    problems = []
+    publishers: dict[str, list[str]] = {}
+    for r in roles:
+        for topic, cls in r.publishes.items():
+            publishers.setdefault(topic, []).append(r.name)
+            if TOPICS.get(topic) is not cls:
+                problems.append(f"{r.name} publishes {topic} as {cls.__name__}, schema says {TOPICS.get(topic)}")
+    for r in roles:
+        for topic, cls in r.subscribes.items():
+            pubs = publishers.get(topic, [])
+            if len(pubs) != 1:
+                problems.append(f"{r.name} subscribes {topic}, published by {pubs or 'nobody'} (need exactly one)")
+            if TOPICS.get(topic) is not cls:
+                problems.append(f"{r.name} subscribes {topic} as {cls.__name__}, schema says {TOPICS.get(topic)}")
+    return problems

@@ -1,0 +1,121 @@
+"""The supervisor behind ``neso up``: every role its own OS process, restarted if it crashes.
+
+Children are started in the order given, their output is echoed with the role's name in
+front, and each gets ``PR_SET_PDEATHSIG`` so it dies with the launcher even if the launcher is
+killed with ``kill -9`` (no orphans). A child that exits while the launcher is running is
+restarted after ``restart_delay_s`` (at most ``max_restarts`` times); a child marked
+``finishes`` (the lockstep source) ends the whole run when it exits cleanly. ``stop()``
+sends SIGTERM to every child, waits up to ``stop_timeout_s``, then SIGKILLs what is left.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except OSError:
+        pass
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    name: str
+    argv: tuple[str, ...]
+    finishes: bool = False  # its clean exit ends the run (instead of being restarted)
+
+
+class Supervisor:
+    def __init__(self, specs: list[ProcessSpec], *, restart_delay_s: float = 0.5, max_restarts: int = 5,
+                 stop_timeout_s: float = 2.0, echo=print) -> None:
+        self.specs = specs
+        self.restart_delay_s = restart_delay_s
+        self.max_restarts = max_restarts
+        self.stop_timeout_s = stop_timeout_s
+        self.echo = echo
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.restarts: dict[str, int] = {s.name: 0 for s in specs}
+        self.finished = threading.Event()
+        self.exit_code = 0
+        self._stopping = False
+        self._lock = threading.Lock()
+
+    def _spawn(self, spec: ProcessSpec) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(list(spec.argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+                                preexec_fn=_die_with_parent, text=True, bufsize=1)
+        self.procs[spec.name] = proc
+        threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True).start()
+
+    def _pump(self, name: str, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            self.echo(f"{name:>10} | {line.rstrip()}")
+
+    def start(self) -> None:
+        for spec in self.specs:
+            self._spawn(spec)
+        self.echo("started: " + ", ".join(f"{n} (pid {p.pid})" for n, p in self.procs.items()))
+
+    def poll(self) -> None:
+        """Restart what crashed; note a finishing child's exit. Call periodically."""
+        with self._lock:
+            if self._stopping:
+                return
+            for spec in self.specs:
+                code = self.procs[spec.name].poll()
+                if code is None:
+                    continue
+                if spec.finishes and code == 0:
+                    self.echo(f"{spec.name} finished")
+                    self.finished.set()
+                    return
+                if self.restarts[spec.name] >= self.max_restarts:
+                    self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: giving up")
+                    self.exit_code = 1
+                    self.finished.set()
+                    return
+                self.restarts[spec.name] += 1
+                self.echo(f"{spec.name} exited with {code}; restarting (restart {self.restarts[spec.name]})")
+                time.sleep(self.restart_delay_s)
+                self._spawn(spec)
+
+    def run(self, poll_s: float = 0.1) -> int:
+        """Supervise until a finishing child ends or SIGINT/SIGTERM; then stop everything."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.finished.set())
+        try:
+            while not self.finished.wait(poll_s):
+                self.poll()
+        finally:
+            self.stop()
+        return self.exit_code
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stopping = True
+        live = [p for p in reversed(list(self.procs.values())) if p.poll() is None]
+        for p in live:
+            p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + self.stop_timeout_s
+        for p in live:
+            try:
+                p.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.echo(f"pid {p.pid} did not stop in {self.stop_timeout_s:.0f} s: killing it")
+                p.kill()
+                p.wait()
+        self.echo("all processes stopped")
+
+
+def python_module_argv(module: str, *args: str) -> tuple[str, ...]:
+    return (sys.executable, "-m", module, *args)

@@ -1,0 +1,222 @@
+"""The thin adapter every service uses: typed publish/subscribe, live parameters, commands,
+health and liveliness over one Zenoh session.
+
+A service builds a :class:`Node` for its role, registers handlers, calls :meth:`Node.start`
+and runs. Handlers run under the node's lock (one at a time, whichever Zenoh thread
+delivers), so a service's step object never sees two inputs at once. A payload that fails
+its schema is counted in health and dropped; a handler that raises is reported as an event
+and counted; neither stops the service.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import sys
+import threading
+import time
+import traceback
+from typing import Any, Callable
+
+from runtime.bus import BusConfig, open_session
+from runtime.graph import role as graph_role
+from runtime.health import HealthStats
+from runtime.params import ParamSet
+from runtime.schema import (CommandReply, CommandRequest, EventMsg, Keys, Message, ParamReply, ParamRequest,
+                            ParamStateMsg, SchemaError)
+
+HEALTH_PERIOD_S = 1.0
+CommandHandler = Callable[[str, dict], tuple[bool, str]]
+
+
+def describe_config(config: Any) -> str:
+    """A dataclass config as indented JSON (what a service prints at start and records)."""
+    data = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else dict(config)
+    return json.dumps(data, default=str)
+
+
+class Node:
+    """One service's presence on the bus (see module docstring)."""
+
+    def __init__(self, service: str, *, vehicle: str, bus: BusConfig, config: Any = None,
+                 params: ParamSet | None = None) -> None:
+        self.role = graph_role(service)
+        self.service = service
+        self.keys = Keys(vehicle)
+        self.config = config
+        self.params = params
+        self.lock = threading.RLock()
+        self.stats = HealthStats(service, tuple(self.role.subscribes) + ("param", "cmd"))
+        self.status_hook: Callable[[], str] | None = None
+        self._command_handler: CommandHandler | None = None
+        self._stop = threading.Event()
+        self._declared: list[Any] = []
+        self._publishers: dict[str, Any] = {}
+        self.session = open_session(bus)
+        self._event_pub = self.session.declare_publisher(self.keys.event(service))
+        self._health_pub = self.session.declare_publisher(self.keys.health(service))
+        self._params_pub = self.session.declare_publisher(self.keys.params(service))
+
+    # -- streams ------------------------------------------------------------------------
+    def publisher(self, topic: str) -> Callable[[Message], None]:
+        """A function that publishes a ``topic`` message; the role must declare the topic."""
+        cls = self.role.publishes.get(topic)
+        if cls is None:
+            raise ValueError(f"{self.service} does not publish {topic!r} (runtime/graph.py)")
+        if topic not in self._publishers:
+            self._publishers[topic] = self.session.declare_publisher(self.keys.topic(topic), express=True)
+        pub = self._publishers[topic]
+
+        def put(msg: Message) -> None:
+            if not isinstance(msg, cls):
+                raise TypeError(f"{topic} carries {cls.__name__}, not {type(msg).__name__}")
+            pub.put(msg.to_bytes())
+        return put
+
+    def subscribe(self, topic: str, handler: Callable[[Any, float], None]) -> None:
+        """Call ``handler(message, received_monotonic_s)`` under the node lock for every valid
+        ``topic`` message; count the invalid ones."""
+        cls = self.role.subscribes.get(topic)
+        if cls is None:
+            raise ValueError(f"{self.service} does not subscribe {topic!r} (runtime/graph.py)")
+
+        def on_sample(sample) -> None:
+            received = time.monotonic()
+            try:
+                msg = cls.from_bytes(sample.payload.to_bytes())
+            except SchemaError as exc:
+                self.stats.reject(topic, str(exc))
+                return
+            self.stats.valid(topic, received)
+            with self.lock:
+                self._guarded(f"{topic} handler", handler, msg, received)
+
+        self._declared.append(self.session.declare_subscriber(self.keys.topic(topic), on_sample))
+
+    def _guarded(self, what: str, fn: Callable, *args) -> Any:
+        try:
+            return fn(*args)
+        except Exception as exc:  # a bug in one handler must not stop the service
+            self.stats.reject(what.split()[0], f"{type(exc).__name__}: {exc}")
+            self.event("error", f"{what} failed: {type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")
+            return None
+
+    # -- parameters and commands -----------------------------------------------------------
+    def on_command(self, handler: CommandHandler) -> None:
+        self._command_handler = handler
+
+    def _on_param_query(self, query) -> None:
+        try:
+            request = ParamRequest.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
+        except SchemaError as exc:
+            self.stats.reject("param", str(exc))
+            query.reply_err(ParamReply(ok=False, service=self.service, values={}, error=str(exc)).to_bytes())
+            return
+        if self.params is None:
+            reply = ParamReply(ok=request.op == "get", service=self.service, values={},
+                               error="" if request.op == "get" else f"{self.service} has no parameters")
+        elif request.op == "get":
+            reply = ParamReply(ok=True, service=self.service, values=self.params.values())
+        else:
+            with self.lock:  # a check may read the step object's state
+                ok, error, values = self.params.request(request.values)
+            reply = ParamReply(ok=ok, service=self.service, values=values, error=error)
+            self.log(f"param set {request.values}: " + ("accepted" if ok else f"refused: {error}"))
+        query.reply(query.key_expr, reply.to_bytes())
+
+    def _on_command_query(self, query) -> None:
+        try:
+            request = CommandRequest.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
+        except SchemaError as exc:
+            self.stats.reject("cmd", str(exc))
+            query.reply_err(CommandReply(ok=False, service=self.service, message=str(exc)).to_bytes())
+            return
+        if self._command_handler is None:
+            ok, message = False, f"{self.service} takes no commands"
+        else:
+            with self.lock:
+                result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
+            ok, message = result if result is not None else (False, "command failed (see events)")
+        self.log(f"command {request.name} {request.args}: " + ("ok" if ok else "refused") + (f": {message}" if message else ""))
+        query.reply(query.key_expr, CommandReply(ok=ok, service=self.service, message=message).to_bytes())
+
+    def broadcast_params(self, seq: int, note: str = "") -> None:
+        if self.params is not None:
+            self._params_pub.put(ParamStateMsg(stamp_s=time.monotonic(), service=self.service, seq=seq,
+                                               values=self.params.effective(), note=note[:4096]).to_bytes())
+
+    # -- telling people -----------------------------------------------------------------
+    def log(self, text: str) -> None:
+        print(f"[{self.service}] {text}", flush=True)
+
+    def event(self, level: str, text: str) -> None:
+        self.log(f"{level}: {text}")
+        self._event_pub.put(EventMsg(stamp_s=time.monotonic(), service=self.service, level=level,
+                                     text=text[:4096]).to_bytes())
+
+    def _health_loop(self) -> None:
+        while not self._stop.wait(HEALTH_PERIOD_S):
+            if self.status_hook is not None:
+                self.stats.status = self._guarded("health status", self.status_hook) or "ok"
+            try:
+                self._health_pub.put(self.stats.report().to_bytes())
+            except Exception as exc:  # the session is closing
+                if not self._stop.is_set():
+                    self.log(f"health publish failed: {exc}")
+
+    # -- life cycle ---------------------------------------------------------------------
+    def start(self) -> None:
+        """Print the config, answer parameter and command queries, report health, then declare
+        the liveliness token: a service is "alive" once it can do its job."""
+        self.log(f"vehicle {self.keys.vehicle}, keys under {self.keys.prefix}/, pid {__import__('os').getpid()}")
+        if self.config is not None:
+            self.log("config " + describe_config(self.config))
+        if self.params is not None:
+            self.log(f"parameters {self.params.values()}")
+        self._declared.append(self.session.declare_queryable(self.keys.param(self.service), self._on_param_query))
+        self._declared.append(self.session.declare_queryable(self.keys.cmd(self.service), self._on_command_query))
+        threading.Thread(target=self._health_loop, name=f"{self.service}-health", daemon=True).start()
+        self._declared.append(self.session.liveliness().declare_token(self.keys.alive(self.service)))
+        self.broadcast_params(0, "start")
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        return self._stop.wait(timeout_s)
+
+    def close(self) -> None:
+        self._stop.set()
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception:
+                pass
+        self._declared.clear()
+        self.session.close()
+
+    def stop_on_signals(self) -> None:
+        """SIGINT/SIGTERM end :meth:`wait` (call from the main thread)."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self._stop.set())
+
+
+def run_node(node: Node, main: Callable[[Node], None] | None = None) -> int:
+    """Start ``node``, run ``main(node)`` (or wait for a signal), always close the session."""
+    try:
+        node.stop_on_signals()
+        node.start()
+        if main is None:
+            node.wait()
+        else:
+            main(node)
+        return 0
+    except Exception:
+        traceback.print_exc(file=sys.stderr)
+        return 1
+    finally:
+        node.close()

@@ -1,0 +1,453 @@
+"""Every key expression and every payload on the bus, in one place.
+
+Keys (one vehicle ``<v>``; several vehicles share a bus under their own prefixes):
+
+====================================  ===============  =============================================
+``neso/<v>/state``                    StateMsg         source → estimator, controller (each sample)
+``neso/<v>/truth``                    TruthMsg         sim source only: the simulated truth
+``neso/<v>/estimate``                 EstimateMsg      estimator → controller (answers state ``seq``)
+``neso/<v>/setpoint``                 SetpointMsg      controller → source/vehicle, estimator
+``neso/<v>/reference``                ReferenceMsg     controller → anyone watching
+``neso/<v>/event/<service>``          EventMsg         what a service wants an operator to know
+``neso/<v>/health/<service>``         HealthMsg        1 Hz: rate, latency, rejected, staleness
+``neso/<v>/alive/<service>``          (liveliness)     token while the service runs
+``neso/<v>/param/<service>``          (queryable)      ParamRequest → ParamReply
+``neso/<v>/params/<service>``         ParamStateMsg    broadcast when parameters take effect
+``neso/<v>/cmd/<service>``            (queryable)      CommandRequest → CommandReply
+====================================  ===============  =============================================
+
+Payloads are msgpack maps with ``v`` (schema version) and ``type``; every message class is a
+frozen dataclass whose fields carry a validator. :func:`decode` rejects, with
+:class:`SchemaError` naming the reason, anything that is not exactly a valid message of the
+expected type and version: bad msgpack, wrong type or version, missing or unknown fields,
+wrong shapes, non-finite or out-of-range numbers. Vectors travel as lists of float64, so a
+round trip is bit-exact. ``seq`` is the sample number the message belongs to (a setpoint and
+an estimate carry the ``seq`` of the state they answer); ``stamp_s`` is ``time.monotonic()`` at
+publication (one clock for every process on a machine: latency is measured with it); ``t_s``
+is the time the sample describes (simulation or vehicle time).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar
+
+import msgpack
+
+SCHEMA_VERSION = 1
+ROOT = "neso"
+MAX_PAYLOAD_BYTES = 1 << 20
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+
+PATHWAYS = ("neural_eso", "eso", "nn", "none")  # mirrors neso.estimator.PATHWAYS (checked by a test)
+ESTIMATE_SOURCES = ("estimator", "local_eso")
+EVENT_LEVELS = ("info", "warning", "error")
+LIMIT_M = 1.0e4  # positions and distances beyond this are not a vehicle in a room
+LIMIT_MPS = 1.0e3
+LIMIT_MPS2 = 1.0e4
+
+
+class SchemaError(ValueError):
+    """A payload that is not a valid message; the text says why."""
+
+
+def valid_name(name: str, what: str = "name") -> str:
+    """A vehicle or service name usable as one key chunk (letters, digits, ``_ . -``)."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValueError(f"{what} {name!r} must be 1–64 of [A-Za-z0-9_.-] not starting with '.' or '-'")
+    return name
+
+
+# -- field validators: value from msgpack → value stored (raise SchemaError) ----------------------
+def _number(lo: float = -math.inf, hi: float = math.inf) -> Callable[[Any], float]:
+    def check(x: Any) -> float:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise SchemaError(f"expected a number, got {type(x).__name__}")
+        x = float(x)
+        if not math.isfinite(x) or not lo <= x <= hi:
+            raise SchemaError(f"{x!r} is outside [{lo}, {hi}] or not finite")
+        return x
+    return check
+
+
+def _integer(lo: int = 0, hi: int = 2**63 - 1) -> Callable[[Any], int]:
+    def check(x: Any) -> int:
+        if isinstance(x, bool) or not isinstance(x, int) or not lo <= x <= hi:
+            raise SchemaError(f"expected an integer in [{lo}, {hi}], got {x!r}")
+        return x
+    return check
+
+
+def _vector(n: int, limit: float) -> Callable[[Any], tuple[float, ...]]:
+    element = _number(-limit, limit)
+
+    def check(x: Any) -> tuple[float, ...]:
+        if not isinstance(x, (list, tuple)) or len(x) != n:
+            raise SchemaError(f"expected a list of {n} numbers, got {type(x).__name__} of length "
+                              f"{len(x) if isinstance(x, (list, tuple)) else '-'}")
+        return tuple(element(v) for v in x)
+    return check
+
+
+def _text(choices: tuple[str, ...] | None = None, max_len: int = 256) -> Callable[[Any], str]:
+    def check(x: Any) -> str:
+        if not isinstance(x, str) or len(x) > max_len:
+            raise SchemaError(f"expected a string of at most {max_len} characters, got {type(x).__name__}")
+        if choices is not None and x not in choices:
+            raise SchemaError(f"{x!r} is not one of {choices}")
+        return x
+    return check
+
+
+def _flag(x: Any) -> bool:
+    if not isinstance(x, bool):
+        raise SchemaError(f"expected true/false, got {type(x).__name__}")
+    return x
+
+
+def _plain(x: Any, depth: int = 0) -> Any:
+    """A msgpack value made of str/int/float/bool/None/list/dict with string keys, at most 4 deep."""
+    if depth > 4:
+        raise SchemaError("value nested too deeply")
+    if x is None or isinstance(x, (bool, int, str)):
+        return x
+    if isinstance(x, float):
+        if not math.isfinite(x):
+            raise SchemaError(f"non-finite number {x!r}")
+        return x
+    if isinstance(x, (list, tuple)):
+        return [_plain(v, depth + 1) for v in x]
+    if isinstance(x, dict):
+        if not all(isinstance(k, str) for k in x):
+            raise SchemaError("map keys must be strings")
+        return {k: _plain(v, depth + 1) for k, v in x.items()}
+    raise SchemaError(f"unsupported value type {type(x).__name__}")
+
+
+def _mapping(x: Any) -> dict:
+    if not isinstance(x, dict):
+        raise SchemaError(f"expected a map, got {type(x).__name__}")
+    return _plain(x)
+
+
+def _numbers_by_name(x: Any) -> dict[str, float]:
+    if not isinstance(x, dict) or len(x) > 256:
+        raise SchemaError("expected a map of at most 256 names to numbers")
+    out = {}
+    for k, v in x.items():
+        if not isinstance(k, str):
+            raise SchemaError("map keys must be strings")
+        out[k] = _number()(v)
+    return out
+
+
+def f(check: Callable[[Any], Any], **kwargs) -> Any:
+    """A message field with its validator."""
+    return field(metadata={"check": check}, **kwargs)
+
+
+# -- messages -------------------------------------------------------------------------------------
+class Message:
+    """Base of every payload: ``to_bytes`` / ``from_bytes`` with validation."""
+
+    TYPE: ClassVar[str]
+
+    def to_bytes(self) -> bytes:
+        body = {"v": SCHEMA_VERSION, "type": self.TYPE}
+        for fld in dataclasses.fields(self):
+            body[fld.name] = getattr(self, fld.name)
+        return msgpack.packb(body, use_bin_type=True)
+
+    @classmethod
+    def from_bytes(cls, data: bytes):
+        return decode(cls, data)
+
+    @classmethod
+    def validate(cls, **values):
+        """Build a message from Python values through the same checks a payload goes through."""
+        return cls.from_bytes(msgpack.packb({"v": SCHEMA_VERSION, "type": cls.TYPE, **values}, use_bin_type=True))
+
+
+def decode(cls: type[Message], data: bytes) -> Message:
+    """The ``cls`` message in ``data``, or :class:`SchemaError` saying what is wrong."""
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise SchemaError(f"payload of {len(data)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    try:
+        body = msgpack.unpackb(data, raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # msgpack raises several unrelated types for bad bytes
+        raise SchemaError(f"not msgpack: {type(exc).__name__}: {exc}") from None
+    if not isinstance(body, dict):
+        raise SchemaError(f"payload is a {type(body).__name__}, expected a map")
+    if body.get("v") != SCHEMA_VERSION:
+        raise SchemaError(f"schema version {body.get('v')!r} is not {SCHEMA_VERSION}")
+    if body.get("type") != cls.TYPE:
+        raise SchemaError(f"message type {body.get('type')!r} where {cls.TYPE!r} was expected")
+    fields = dataclasses.fields(cls)
+    names = {fld.name for fld in fields}
+    unknown = set(body) - names - {"v", "type"}
+    if unknown:
+        raise SchemaError(f"unknown fields {sorted(map(str, unknown))}")
+    values = {}
+    for fld in fields:
+        if fld.name not in body:
+            if fld.default is not dataclasses.MISSING:
+                continue
+            if fld.default_factory is not dataclasses.MISSING:
+                continue
+            raise SchemaError(f"missing field {fld.name!r}")
+        try:
+            values[fld.name] = fld.metadata["check"](body[fld.name])
+        except SchemaError as exc:
+            raise SchemaError(f"field {fld.name!r}: {exc}") from None
+    return cls(**values)
+
+
+_SEQ = _integer()
+_STAMP = _number(0.0)
+_TIME = _number(-1e9, 1e9)
+_ANGLE = _number(-4.0, 4.0)  # radians, a little beyond ±π for wrap-around slack
+_POS = _vector(3, LIMIT_M)
+_VEL = _vector(3, LIMIT_MPS)
+_ACC = _vector(3, LIMIT_MPS2)
+
+
+@dataclass(frozen=True, slots=True)
+class StateMsg(Message):
+    """A state sample (ENU, SI). ``source``: ``sim``, ``mocap`` or ``replay``."""
+
+    TYPE: ClassVar[str] = "state"
+    seq: int = f(_SEQ)
+    stamp_s: float = f(_STAMP)
+    t_s: float = f(_TIME)
+    pos_enu_m: tuple = f(_POS)
+    vel_enu_mps: tuple = f(_VEL)
+    roll_rad: float = f(_ANGLE)
+    pitch_rad: float = f(_ANGLE)
+    yaw_rad: float = f(_ANGLE)
+    source: str = f(_text(("sim", "mocap", "replay")))
+
+
+@dataclass(frozen=True, slots=True)
+class TruthMsg(Message):
+    """The simulator's truth at state ``seq``: position, velocity, the disturbance the nominal
+    model does not explain (m/s²), ground contact."""
+
+    TYPE: ClassVar[str] = "truth"
+    seq: int = f(_SEQ)
+    stamp_s: float = f(_STAMP)
+    t_s: float = f(_TIME)
+    pos_enu_m: tuple = f(_POS)
+    vel_enu_mps: tuple = f(_VEL)
+    disturbance_acc_enu_mps2: tuple = f(_ACC)
+    on_ground: bool = f(_flag)
+    crashed: bool = f(_flag)
+    scenario: str = f(_text())
+
+
+@dataclass(frozen=True, slots=True)
+class EstimateMsg(Message):
+    """f̂ = f_N + Δf̂ (m/s², ENU) for state ``seq``; ``z`` the network input (5,).
+    ``warm_ticks``: samples since the estimator (re)started (its observer converges over the
+    first ones)."""
+
+    TYPE: ClassVar[str] = "estimate"
+    seq: int = f(_SEQ)
+    stamp_s: float = f(_STAMP)
+    t_s: float = f(_TIME)
+    f_hat_mps2: tuple = f(_ACC)
+    f_n_mps2: tuple = f(_ACC)
+    delta_f_hat_mps2: tuple = f(_ACC)
+    z: tuple = f(_vector(5, 1e6))
+    pathway: str = f(_text(PATHWAYS))
+    network_id: str = f(_text())
+    warm_ticks: int = f(_SEQ)
+
+
+@dataclass(frozen=True, slots=True)
+class SetpointMsg(Message):
+    """The attitude setpoint answering state ``seq`` (ENU/FLU, ZYX Euler, rad), with what the
+    estimator must be told acted over the next period: the nominal acceleration it produces
+    (m/s²) and the commanded thrust (N). ``estimate_source`` says which f̂ the controller used.
+    ``state_stamp_s`` echoes the state's ``stamp_s`` (end-to-end latency)."""
+
+    TYPE: ClassVar[str] = "setpoint"
+    seq: int = f(_SEQ)
+    stamp_s: float = f(_STAMP)
+    state_stamp_s: float = f(_STAMP)
+    t_s: float = f(_TIME)
+    roll_rad: float = f(_ANGLE)
+    pitch_rad: float = f(_ANGLE)
+    yaw_rad: float = f(_ANGLE)
+    thrust_norm: float = f(_number(0.0, 1.0))
+    thrust_n: float = f(_number(0.0, 1e4))
+    acc_cmd_enu_mps2: tuple = f(_ACC)
+    estimate_source: str = f(_text(ESTIMATE_SOURCES))
+
+
+@dataclass(frozen=True, slots=True)
+class ReferenceMsg(Message):
+    """The reference the controller tracked at state ``seq``; ``segment`` names the mission step."""
+
+    TYPE: ClassVar[str] = "reference"
+    seq: int = f(_SEQ)
+    stamp_s: float = f(_STAMP)
+    t_s: float = f(_TIME)
+    pos_enu_m: tuple = f(_POS)
+    vel_enu_mps: tuple = f(_VEL)
+    acc_enu_mps2: tuple = f(_ACC)
+    yaw_rad: float = f(_ANGLE)
+    segment: str = f(_text())
+
+
+@dataclass(frozen=True, slots=True)
+class EventMsg(Message):
+    TYPE: ClassVar[str] = "event"
+    stamp_s: float = f(_STAMP)
+    service: str = f(_text())
+    level: str = f(_text(EVENT_LEVELS))
+    text: str = f(_text(max_len=4096))
+
+
+@dataclass(frozen=True, slots=True)
+class HealthMsg(Message):
+    """Once a second. ``rate_hz``: outputs per second; ``latency_*_ms``: input received → output
+    published inside the service; ``rejected``: malformed payloads per input key since start;
+    ``staleness_s``: seconds since the last valid message per input (−1: none yet)."""
+
+    TYPE: ClassVar[str] = "health"
+    stamp_s: float = f(_STAMP)
+    service: str = f(_text())
+    pid: int = f(_SEQ)
+    uptime_s: float = f(_number(0.0))
+    ticks: int = f(_SEQ)
+    rate_hz: float = f(_number(0.0))
+    latency_p50_ms: float = f(_number(0.0))
+    latency_p99_ms: float = f(_number(0.0))
+    rejected: dict = f(_numbers_by_name)
+    staleness_s: dict = f(_numbers_by_name)
+    status: str = f(_text(max_len=1024))
+
+
+@dataclass(frozen=True, slots=True)
+class ParamRequest(Message):
+    """``op`` ``get`` (``values`` ignored) or ``set`` (``values``: name → new value, all or nothing)."""
+
+    TYPE: ClassVar[str] = "param_request"
+    op: str = f(_text(("get", "set")))
+    values: dict = f(_mapping, default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class ParamReply(Message):
+    """``ok``: accepted (a set takes effect at the service's next tick boundary). ``values``:
+    every parameter's current value (after a set: the values that will be in effect);
+    ``error``: why a set was refused (nothing changed)."""
+
+    TYPE: ClassVar[str] = "param_reply"
+    ok: bool = f(_flag)
+    service: str = f(_text())
+    values: dict = f(_mapping)
+    error: str = f(_text(max_len=4096), default="")
+
+
+@dataclass(frozen=True, slots=True)
+class ParamStateMsg(Message):
+    """Broadcast when parameters take effect: all values, the first ``seq`` they apply to, and
+    what the service did to apply them (``note``)."""
+
+    TYPE: ClassVar[str] = "param_state"
+    stamp_s: float = f(_STAMP)
+    service: str = f(_text())
+    seq: int = f(_SEQ)
+    values: dict = f(_mapping)
+    note: str = f(_text(max_len=4096), default="")
+
+
+@dataclass(frozen=True, slots=True)
+class CommandRequest(Message):
+    TYPE: ClassVar[str] = "command"
+    name: str = f(_text(max_len=64))
+    args: dict = f(_mapping, default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class CommandReply(Message):
+    TYPE: ClassVar[str] = "command_reply"
+    ok: bool = f(_flag)
+    service: str = f(_text())
+    message: str = f(_text(max_len=4096), default="")
+
+
+# -- keys -----------------------------------------------------------------------------------------
+# Stream topics: name → message type. The per-service keys (event, health, alive, param,
+# params, cmd) exist for every service and are built by Keys.
+TOPICS: dict[str, type[Message]] = {
+    "state": StateMsg,
+    "truth": TruthMsg,
+    "estimate": EstimateMsg,
+    "setpoint": SetpointMsg,
+    "reference": ReferenceMsg,
+}
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Every key expression of one vehicle."""
+
+    vehicle: str
+
+    def __post_init__(self) -> None:
+        valid_name(self.vehicle, "vehicle")
+
+    @property
+    def prefix(self) -> str:
+        return f"{ROOT}/{self.vehicle}"
+
+    def topic(self, name: str) -> str:
+        if name not in TOPICS:
+            raise KeyError(f"unknown topic {name!r}; known: {sorted(TOPICS)}")
+        return f"{self.prefix}/{name}"
+
+    def _per_service(self, kind: str, service: str) -> str:
+        return f"{self.prefix}/{kind}/{valid_name(service, 'service')}"
+
+    def event(self, service: str) -> str:
+        return self._per_service("event", service)
+
+    def health(self, service: str) -> str:
+        return self._per_service("health", service)
+
+    def alive(self, service: str) -> str:
+        return self._per_service("alive", service)
+
+    def param(self, service: str) -> str:
+        return self._per_service("param", service)
+
+    def params(self, service: str) -> str:
+        return self._per_service("params", service)
+
+    def cmd(self, service: str) -> str:
+        return self._per_service("cmd", service)
+
+    def every(self, kind: str) -> str:
+        """All services' keys of one kind (``event``, ``health``, ``alive``, ``params``)."""
+        return f"{self.prefix}/{kind}/*"
+
+    @staticmethod
+    def all_vehicles(kind: str) -> str:
+        return f"{ROOT}/*/{kind}/*"
+
+
+def vehicle_and_service(key: str) -> tuple[str, str]:
+    """(vehicle, service) of a per-service key such as ``neso/uav1/health/estimator``."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != ROOT:
+        raise ValueError(f"{key!r} is not a per-service key")
+    return parts[1], parts[3]
+
+
+def vec(x) -> tuple[float, ...]:
+    """A numpy vector as the tuple of floats a message field holds."""
+    return tuple(float(v) for v in x)

@@ -1,0 +1,255 @@
+"""``controller``: mission + state + f̂ → attitude setpoint, with a local ESO when f̂ goes stale.
+
+The step object (:class:`ControllerCore`) pairs each state sample with the estimate for the
+same ``seq`` and runs the position controller on them (the tick order of
+:func:`sim.runner.fly`). It also runs its own plain ESO on every sample (a few µs): if the
+estimate for the newest sample has not come within ``stale_timeout_s``, it flies on that
+local f̂ instead, says so on the bus, and keeps doing so until the estimator's estimates are
+back and warm. It never flies on a stale estimate. Mission commands and gain changes take
+effect at the next sample.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from neso.control import ControlConfig, PositionController
+from neso.eso import EsoConfig
+from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
+from neso.mission import COMMANDS, Mission, MissionConfig
+from neso.types import AttitudeSetpoint, StateMeasurement, VehicleModel
+from runtime.params import Param, ParamSet
+from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg, vec
+
+_KEEP = 64  # samples of unmatched states/estimates kept
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """``mission``: command started at the first sample of a flight (``idle``: wait for one).
+    ``stale_timeout_s``: how long the newest sample may wait for its estimate before the local
+    ESO takes over (default 3 periods). ``warmup_ticks``: samples a (re)started estimator must
+    have run before its estimates are used again."""
+
+    control: ControlConfig = field(default_factory=ControlConfig)
+    mission: str = "hover"
+    missions: MissionConfig = field(default_factory=MissionConfig)
+    omega_o_rps: float = 15.0  # the local ESO's bandwidth
+    stale_timeout_s: float = 0.06
+    warmup_ticks: int = 25
+
+
+CONTROLLER_PARAMS = (
+    Param("kp_xy", 6.0, float, "horizontal position gain", "1/s²", lo=0.1, hi=50.0),
+    Param("kd_xy", 4.5, float, "horizontal velocity gain", "1/s", lo=0.1, hi=30.0),
+    Param("kp_z", 10.0, float, "altitude position gain", "1/s²", lo=0.1, hi=50.0),
+    Param("kd_z", 6.0, float, "altitude velocity gain", "1/s", lo=0.1, hi=30.0),
+)
+
+
+@dataclass
+class _Pending:
+    state: StateMsg
+    meas: StateMeasurement
+    received_s: float
+
+
+class ControllerCore:
+    """The pure step object. Feed :meth:`on_state`, :meth:`on_estimate` and :meth:`check_stale`;
+    each returns the (setpoint, reference) pairs to publish (zero or one) plus events."""
+
+    def __init__(self, config: ControllerConfig) -> None:
+        self.config = config
+        self.position = PositionController(config.control)
+        self.mission = Mission(config.missions)
+        self.local = NeuralESO(NeuralEsoConfig(eso=EsoConfig(omega_o_rps=config.omega_o_rps, dt_s=config.control.dt_s),
+                                               pathway="eso"))
+        self.using_local = False
+        self.events: list[tuple[str, str]] = []
+        self._estimates: dict[int, EstimateMsg] = {}
+        self._pending: _Pending | None = None
+        self._last_seq = -1
+        self._last_stepped = -1
+        self._applied = self.position.hover_output().applied
+        self._pending_command: tuple[str, dict] | None = None
+        self._pending_local = np.zeros(3)
+        self._last_output: list = []
+
+    # -- operator inputs (applied at the next sample) ---------------------------------------
+    def command(self, name: str, args: dict) -> tuple[bool, str]:
+        if name not in COMMANDS:
+            return False, f"unknown mission command {name!r}; choose one of {list(COMMANDS)}"
+        self._pending_command = (name, dict(args))
+        return True, f"{name} starts at the next sample"
+
+    def apply_gains(self, values: dict) -> None:
+        control = replace(self.config.control, kp=(values["kp_xy"], values["kp_xy"], values["kp_z"]),
+                          kd=(values["kd_xy"], values["kd_xy"], values["kd_z"]))
+        force = self.position.force_prev_enu_n.copy()
+        self.config = replace(self.config, control=control)
+        self.position = PositionController(control)
+        self.position.reset(force)  # keep the rate limiter's memory: no step at the change
+
+    # -- samples ------------------------------------------------------------------------
+    def on_state(self, state: StateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
+        if state.seq == self._last_seq:
+            return self._last_output if self._last_stepped == state.seq else []  # a re-sent sample
+        if 0 < state.seq < self._last_seq:
+            return []  # late
+        meas = StateMeasurement(t_s=state.t_s, pos_enu_m=np.array(state.pos_enu_m), vel_enu_mps=np.array(state.vel_enu_mps),
+                                roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad)
+        if self._last_seq < 0 or state.seq < self._last_seq:
+            self._begin_flight(state, meas)
+        self._last_seq = state.seq
+        local = self.local.update(meas, self._applied)
+        self._pending = _Pending(state, meas, now_s)
+        self._pending_local = local.f_hat
+        if self.using_local:
+            return self._step(local_f_hat=True, now_s=now_s)
+        if state.seq in self._estimates:
+            return self._step(local_f_hat=False, now_s=now_s)
+        return []
+
+    def on_estimate(self, est: EstimateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
+        if est.seq < self._last_stepped:
+            return []
+        self._estimates[est.seq] = est
+        for old in [s for s in self._estimates if s < est.seq - _KEEP]:
+            del self._estimates[old]
+        if self.using_local and est.warm_ticks >= self.config.warmup_ticks:
+            self.using_local = False
+            self.events.append(("info", f"estimator back (warm for {est.warm_ticks} samples): flying on its f̂ again"))
+            return []
+        p = self._pending
+        if not self.using_local and p is not None and p.state.seq == est.seq:
+            return self._step(local_f_hat=False, now_s=now_s)
+        return []
+
+    def check_stale(self, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
+        """Watchdog: the newest sample has waited too long for its estimate → local ESO."""
+        p = self._pending
+        if self.using_local or p is None or now_s - p.received_s < self.config.stale_timeout_s:
+            return []
+        self.using_local = True
+        self.events.append(("warning", f"estimate for sample {p.state.seq} not received within "
+                                       f"{self.config.stale_timeout_s * 1e3:.0f} ms: flying on the local ESO"))
+        return self._step(local_f_hat=True, now_s=now_s)
+
+    # -- internals ----------------------------------------------------------------------
+    def _begin_flight(self, state: StateMsg, meas: StateMeasurement) -> None:
+        self.position = PositionController(self.config.control)
+        self._applied = self.position.hover_output(meas.yaw_rad).applied
+        self.local.reset(meas, self._applied.thrust_n)
+        self._estimates.clear()
+        self._last_stepped = -1
+        self.mission = Mission(self.config.missions)
+        name = self.config.mission
+        if name != "idle":
+            if state.seq == 0:
+                self.mission.start(name, 0.0, meas.pos_enu_m)  # a flight starts at the source's t = 0
+            else:
+                self.mission.start("hover", state.t_s, meas.pos_enu_m)
+                self.events.append(("info", f"joined a flight at sample {state.seq}: holding position"))
+
+    def _step(self, *, local_f_hat: bool, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
+        p = self._pending
+        self._pending = None
+        if p.state.seq <= self._last_stepped:
+            return []
+        if self._pending_command is not None:
+            name, _ = self._pending_command
+            self._pending_command = None
+            self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
+        f_hat = self._pending_local if local_f_hat else np.array(self._estimates[p.state.seq].f_hat_mps2)
+        ref = self.mission.reference(p.state.t_s)
+        if ref is not None and self.mission.landed(p.meas.pos_enu_m[2]):
+            ref = None
+            self.events.append(("info", "landed: motors idle"))
+        if ref is None:
+            setpoint = AttitudeSetpoint(0.0, 0.0, p.meas.yaw_rad, 0.0, 0.0)
+            self.position.reset(np.zeros(3))
+            self._applied = AppliedControl(acc_cmd_enu_mps2=np.array([0.0, 0.0, -self.config.control.vehicle.gravity_mps2]),
+                                           thrust_n=0.0)
+            reference = None
+        else:
+            out = self.position.step(p.meas, ref, f_hat)
+            setpoint, self._applied = out.setpoint, out.applied
+            reference = ReferenceMsg(seq=p.state.seq, stamp_s=now_s, t_s=p.state.t_s, pos_enu_m=vec(ref.pos_enu_m),
+                                     vel_enu_mps=vec(ref.vel_enu_mps), acc_enu_mps2=vec(ref.acc_enu_mps2),
+                                     yaw_rad=ref.yaw_rad, segment=self.mission.segment)
+        self._last_stepped = p.state.seq
+        msg = SetpointMsg(seq=p.state.seq, stamp_s=time.monotonic(), state_stamp_s=p.state.stamp_s, t_s=p.state.t_s,
+                          roll_rad=setpoint.roll_rad, pitch_rad=setpoint.pitch_rad, yaw_rad=setpoint.yaw_rad,
+                          thrust_norm=setpoint.thrust_norm, thrust_n=setpoint.thrust_n,
+                          acc_cmd_enu_mps2=vec(self._applied.acc_cmd_enu_mps2),
+                          estimate_source="local_eso" if local_f_hat else "estimator")
+        self._last_output = [(msg, reference)]
+        return self._last_output
+
+
+# -- bus adapter ------------------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mission", default="hover", choices=("idle",) + COMMANDS,
+                        help="mission started with the flight (default hover)")
+    parser.add_argument("--rate", type=float, default=50.0, help="control rate Hz (must match the source)")
+    parser.add_argument("--stale-periods", type=float, default=3.0,
+                        help="periods the newest sample waits for its estimate before the local ESO flies")
+    parser.add_argument("--omega-o", type=float, default=15.0, help="local ESO bandwidth rad/s")
+
+
+def config_from_args(args) -> ControllerConfig:
+    dt = 1.0 / args.rate
+    stale = 2.0 if getattr(args, "lockstep", False) else args.stale_periods * dt
+    return ControllerConfig(control=replace(ControlConfig(), dt_s=dt), mission=args.mission, omega_o_rps=args.omega_o,
+                            stale_timeout_s=stale)
+
+
+def run(args, bus) -> int:
+    from runtime.node import Node, run_node
+
+    config = config_from_args(args)
+    core = ControllerCore(config)
+    c = config.control
+    params = ParamSet(CONTROLLER_PARAMS, {"kp_xy": c.kp[0], "kd_xy": c.kd[0], "kp_z": c.kp[2], "kd_z": c.kd[2]})
+    node = Node("controller", vehicle=args.vehicle, bus=bus, config=config, params=params)
+    put_setpoint, put_reference = node.publisher("setpoint"), node.publisher("reference")
+
+    def publish(outputs, received_s: float) -> None:
+        for setpoint, reference in outputs:
+            put_setpoint(setpoint)
+            node.stats.output(time.monotonic() - received_s)
+            if reference is not None:
+                put_reference(reference)
+        while core.events:
+            node.event(*core.events.pop(0))
+
+    def tick_boundary(seq: int) -> None:
+        changed = params.take_pending()
+        if changed:
+            core.apply_gains(params.effective())
+            node.broadcast_params(seq, f"gains {changed} from sample {seq}")
+
+    def on_state(msg: StateMsg, received_s: float) -> None:
+        tick_boundary(msg.seq)
+        publish(core.on_state(msg, received_s), received_s)
+
+    def on_estimate(msg: EstimateMsg, received_s: float) -> None:
+        publish(core.on_estimate(msg, received_s), received_s)
+
+    node.subscribe("state", on_state)
+    node.subscribe("estimate", on_estimate)
+    node.on_command(core.command)
+    node.status_hook = lambda: ("flying on the LOCAL ESO (estimate stale)" if core.using_local else
+                                f"ok, segment {core.mission.segment}")
+
+    def watchdog(node: Node) -> None:
+        period = max(config.stale_timeout_s / 3.0, 0.001)
+        while not node.wait(period):
+            with node.lock:
+                now = time.monotonic()
+                publish(core.check_stale(now), now)
+
+    return run_node(node, watchdog)

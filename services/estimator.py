@@ -1,0 +1,238 @@
+"""``estimator``: Neural-ESO on the bus, with live pathway and Lipschitz bound.
+
+The step object (:class:`EstimatorCore`) runs :class:`neso.estimator.NeuralESO` on each state
+sample with the control that acted over the period before it (the setpoint answering the
+previous sample; in lockstep it waits for that setpoint, in real time it takes the newest).
+Live parameters:
+
+- ``pathway`` (``neural_eso``, ``eso``, ``nn``, ``none``): switched bumplessly at the next sample.
+- ``lipschitz_bound`` (L_N, normalised units as the paper trains): the network trained for that
+  bound if one is in the network directory (same training data as the loaded one), otherwise
+  the loaded network with its layers scaled down until its exact certificate meets the bound.
+  A bound above the one the loaded network was trained to, with no network for it on disk, is
+  refused: scaling can only flatten a network. The broadcast says which was done.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from neso.control import PositionController, ControlConfig
+from neso.eso import EsoConfig
+from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig
+from neso.features import N_FEATURES
+from neso.netfile import NetworkFileError, load_network
+from neso.network import LipschitzMLP
+from neso.types import StateMeasurement
+from runtime.params import Param
+from runtime.schema import EstimateMsg, SetpointMsg, StateMsg, vec
+
+DEFAULT_NETWORK = "networks/base-L1.safetensors"
+_KEEP = 64
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """``network``: the network file flown (``""``: none; nn/neural_eso then predict 0).
+    ``network_dir``: where networks trained for other bounds are looked for."""
+
+    network: str = DEFAULT_NETWORK
+    network_dir: str = "networks"
+    pathway: str = "neural_eso"
+    omega_o_rps: float = 15.0
+    dt_s: float = 0.02
+    lockstep: bool = False
+
+
+def estimator_params(config: EstimatorConfig, bound: float) -> tuple[Param, ...]:
+    return (
+        Param("pathway", config.pathway, str, "which pathways make f̂", choices=PATHWAYS),
+        Param("lipschitz_bound", bound, float, "L_N of the network flown (normalised units)", lo=1e-6, hi=1e3),
+    )
+
+
+def _same_bound(a: float, b: float) -> bool:
+    return math.isclose(a, b, rel_tol=1e-9)
+
+
+class NetworkChoice:
+    """Which network flies at a given L_N: one trained for it on disk, or the loaded one scaled."""
+
+    def __init__(self, loaded: LipschitzMLP | None, source: str, directory: str | None) -> None:
+        self.loaded, self.source = loaded, source
+        self.trained: dict[float, tuple[LipschitzMLP, str]] = {}
+        self.skipped: list[str] = []
+        if loaded is None or not directory or not Path(directory).is_dir():
+            return
+        family = loaded.metadata.get("training_data", "")
+        for path in sorted(Path(directory).glob("*.safetensors")):
+            try:
+                net = load_network(path, expected_inputs=N_FEATURES, expected_outputs=loaded.n_outputs)
+            except NetworkFileError as exc:
+                self.skipped.append(f"{path}: {exc}")
+                continue
+            if net.metadata.get("training_data", "") == family:
+                self.trained.setdefault(net.lipschitz_bound, (net, str(path)))
+
+    def refusal(self, bound: float) -> str | None:
+        if self.loaded is None:
+            return "no network is loaded, so there is no L_N to set"
+        if any(_same_bound(bound, b) for b in self.trained) or bound <= self.loaded.lipschitz_bound * (1 + 1e-9):
+            return None
+        return (f"L_N={bound:g} is above the {self.loaded.lipschitz_bound:g} the loaded network was trained to, and no "
+                f"network trained for {bound:g} on the same data is on disk (have: {sorted(self.trained)})")
+
+    def network_for(self, bound: float) -> tuple[LipschitzMLP, str]:
+        """(network, what was done) for L_N = ``bound`` (call only if :meth:`refusal` is None)."""
+        for b, (net, path) in self.trained.items():
+            if _same_bound(b, bound):
+                return net, f"loaded {path}, trained for L_N={b:g} (certified {net.certified_lipschitz_normalised():.4g} " \
+                            f"normalised, {net.certified_lipschitz_physical():.4g} physical)"
+        net = self.loaded.scaled_to_bound(bound)
+        return net, (f"no network trained for L_N={bound:g} on disk: scaled {self.source} (trained for "
+                     f"{self.loaded.lipschitz_bound:g}) down to certified {net.certified_lipschitz_normalised():.4g} "
+                     f"normalised, {net.certified_lipschitz_physical():.4g} physical")
+
+
+class EstimatorCore:
+    """The pure step object: :meth:`on_setpoint` and :meth:`on_state` return the estimates to publish."""
+
+    def __init__(self, config: EstimatorConfig, network: LipschitzMLP | None, choice: NetworkChoice) -> None:
+        self.config = config
+        self.choice = choice
+        self.network_id = network.metadata.get("id", "unnamed") if network is not None else "none"
+        self.estimator = NeuralESO(NeuralEsoConfig(eso=EsoConfig(omega_o_rps=config.omega_o_rps, dt_s=config.dt_s),
+                                                   pathway=config.pathway), network)
+        self._hover = PositionController(ControlConfig(dt_s=config.dt_s)).hover_output().applied
+        self._applied: dict[int, AppliedControl] = {}
+        self._latest_applied: AppliedControl | None = None
+        self._waiting: list[StateMsg] = []
+        self._last_seq = -1
+        self._last_output: EstimateMsg | None = None
+        self.warm_ticks = 0
+
+    # -- live parameters ----------------------------------------------------------------
+    def check(self, values: dict) -> str | None:
+        bound = values["lipschitz_bound"]
+        if self.estimator.network is None or _same_bound(bound, self.estimator.network.lipschitz_bound):
+            return None
+        return self.choice.refusal(bound)
+
+    def apply(self, changed: dict) -> str:
+        notes = []
+        if "pathway" in changed:
+            self.estimator.set_pathway(changed["pathway"])
+            notes.append(f"pathway {changed['pathway']}")
+        if "lipschitz_bound" in changed and self.choice.loaded is not None:
+            net, note = self.choice.network_for(changed["lipschitz_bound"])
+            self.estimator.set_network(net)
+            self.network_id = f"{net.metadata.get('id', 'unnamed')}@L{changed['lipschitz_bound']:g}"
+            notes.append(note)
+        return "; ".join(notes)
+
+    # -- samples ------------------------------------------------------------------------
+    def on_setpoint(self, sp: SetpointMsg, now_s: float) -> list[EstimateMsg]:
+        applied = AppliedControl(acc_cmd_enu_mps2=np.array(sp.acc_cmd_enu_mps2), thrust_n=sp.thrust_n)
+        self._applied[sp.seq] = applied
+        self._latest_applied = applied
+        for old in [s for s in self._applied if s < sp.seq - _KEEP]:
+            del self._applied[old]
+        out = []
+        while self._waiting and self._waiting[0].seq - 1 in self._applied:
+            out += self._process(self._waiting.pop(0), now_s)
+        return out
+
+    def on_state(self, state: StateMsg, now_s: float) -> list[EstimateMsg]:
+        if state.seq == self._last_seq and self._last_output is not None:
+            return [self._last_output]  # a re-sent sample: answer it again
+        if 0 < state.seq < self._last_seq:
+            return []
+        if self.config.lockstep and state.seq > 0 and self._last_seq >= 0 and state.seq - 1 not in self._applied:
+            self._waiting.append(state)  # lockstep: the control of the previous period is still on its way
+            return []
+        return self._process(state, now_s)
+
+    def _process(self, state: StateMsg, now_s: float) -> list[EstimateMsg]:
+        meas = StateMeasurement(t_s=state.t_s, pos_enu_m=np.array(state.pos_enu_m), vel_enu_mps=np.array(state.vel_enu_mps),
+                                roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad)
+        if self._last_seq < 0 or state.seq < self._last_seq:  # first sample, or a new flight
+            applied = self._hover if state.seq == 0 else (self._latest_applied or self._hover)
+            self._applied.clear()
+            self.estimator.reset(meas, applied.thrust_n)
+            self.warm_ticks = 0
+        else:
+            applied = self._applied.get(state.seq - 1) or self._latest_applied or self._hover
+        self._last_seq = state.seq
+        est = self.estimator.update(meas, applied)
+        self.warm_ticks += 1
+        self._last_output = EstimateMsg(
+            seq=state.seq, stamp_s=time.monotonic(), t_s=state.t_s, f_hat_mps2=vec(est.f_hat), f_n_mps2=vec(est.f_n),
+            delta_f_hat_mps2=vec(est.delta_f_hat), z=vec(est.z), pathway=est.pathway, network_id=self.network_id,
+            warm_ticks=self.warm_ticks)
+        return [self._last_output]
+
+
+def load_flown_network(path: str) -> tuple[LipschitzMLP | None, str]:
+    """The network at ``path`` (``""``: none), validated through the file gate."""
+    if not path:
+        return None, "none"
+    return load_network(path, expected_inputs=N_FEATURES, expected_outputs=1), path
+
+
+# -- bus adapter ------------------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--network", default=DEFAULT_NETWORK, help="network file flown ('' for none)")
+    parser.add_argument("--network-dir", default="networks", help="networks trained for other L_N")
+    parser.add_argument("--pathway", default="neural_eso", choices=PATHWAYS)
+    parser.add_argument("--omega-o", type=float, default=15.0, help="observer bandwidth rad/s")
+    parser.add_argument("--rate", type=float, default=50.0, help="sample rate Hz (must match the source)")
+
+
+def config_from_args(args) -> EstimatorConfig:
+    return EstimatorConfig(network=args.network, network_dir=args.network_dir, pathway=args.pathway,
+                           omega_o_rps=args.omega_o, dt_s=1.0 / args.rate, lockstep=getattr(args, "lockstep", False))
+
+
+def run(args, bus) -> int:
+    from runtime.node import Node, run_node
+    from runtime.params import ParamSet
+
+    config = config_from_args(args)
+    network, source = load_flown_network(config.network)
+    choice = NetworkChoice(network, source, config.network_dir)
+    core = EstimatorCore(config, network, choice)
+    bound = network.lipschitz_bound if network is not None else 1.0
+    params = ParamSet(estimator_params(config, bound), check=core.check)
+    node = Node("estimator", vehicle=args.vehicle, bus=bus, config=config, params=params)
+    if network is not None:
+        node.log(f"network {source}: id {core.network_id}, L_N {network.lipschitz_bound:g} normalised "
+                 f"({network.lipschitz_bound_physical():.4g} physical); networks for L_N {sorted(choice.trained)} on disk")
+    for skipped in choice.skipped:
+        node.log(f"skipped {skipped}")
+    put = node.publisher("estimate")
+
+    def publish(estimates: list[EstimateMsg], received_s: float) -> None:
+        for est in estimates:
+            put(est)
+            node.stats.output(time.monotonic() - received_s)
+
+    def on_state(msg: StateMsg, received_s: float) -> None:
+        changed = params.take_pending()
+        if changed:
+            note = core.apply(changed)
+            node.broadcast_params(msg.seq, note)
+            node.event("info", f"from sample {msg.seq}: {note}")
+        publish(core.on_state(msg, received_s), received_s)
+
+    def on_setpoint(msg: SetpointMsg, received_s: float) -> None:
+        publish(core.on_setpoint(msg, received_s), received_s)
+
+    node.subscribe("state", on_state)
+    node.subscribe("setpoint", on_setpoint)
+    node.status_hook = lambda: f"ok, pathway {core.estimator.pathway}, network {core.network_id}"
+    return run_node(node)
