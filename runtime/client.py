@@ -1,6 +1,8 @@
 """Asking services things from outside: parameter get/set and commands, as one-shot queries."""
 from __future__ import annotations
 
+import time
+
 from runtime.schema import CommandReply, CommandRequest, Keys, ParamReply, ParamRequest, SchemaError
 
 
@@ -8,14 +10,21 @@ class ServiceUnavailable(RuntimeError):
     """No reply from the service (not running, or not reachable on this bus)."""
 
 
-def _query(session, key: str, payload: bytes, reply_type, timeout_s: float):
-    for reply in session.get(key, payload=payload, timeout=timeout_s):
-        data = reply.ok.payload.to_bytes() if reply.ok is not None else reply.err.payload.to_bytes()
-        try:
-            return reply_type.from_bytes(data)
-        except SchemaError as exc:
-            raise ServiceUnavailable(f"{key}: unreadable reply ({exc})") from None
-    raise ServiceUnavailable(f"no reply on {key} within {timeout_s:g} s: is the service running?")
+def _query(session, key: str, payload: bytes, reply_type, timeout_s: float, attempt_s: float = 0.25):
+    """The first reply to a query on ``key``. A session that has just opened may not know the
+    service's queryable yet, so the query is repeated every ``attempt_s`` until ``timeout_s``
+    (requests here are idempotent: a get, or a set of absolute values)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        for reply in session.get(key, payload=payload, timeout=attempt_s):
+            data = reply.ok.payload.to_bytes() if reply.ok is not None else reply.err.payload.to_bytes()
+            try:
+                return reply_type.from_bytes(data)
+            except SchemaError as exc:
+                raise ServiceUnavailable(f"{key}: unreadable reply ({exc})") from None
+        if time.monotonic() >= deadline:
+            raise ServiceUnavailable(f"no reply on {key} within {timeout_s:g} s: is the service running?")
+        time.sleep(0.02)
 
 
 def get_params(session, keys: Keys, service: str, timeout_s: float = 2.0) -> ParamReply:

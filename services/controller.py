@@ -52,9 +52,11 @@ CONTROLLER_PARAMS = (
 
 @dataclass
 class _Pending:
+    """The newest sample not answered yet; ``waiting_since_s``: arrival of the oldest unanswered one."""
+
     state: StateMsg
     meas: StateMeasurement
-    received_s: float
+    waiting_since_s: float
 
 
 class ControllerCore:
@@ -105,7 +107,8 @@ class ControllerCore:
             self._begin_flight(state, meas)
         self._last_seq = state.seq
         local = self.local.update(meas, self._applied)
-        self._pending = _Pending(state, meas, now_s)
+        waiting_since = self._pending.waiting_since_s if self._pending is not None else now_s
+        self._pending = _Pending(state, meas, waiting_since)
         self._pending_local = local.f_hat
         if self.using_local:
             return self._step(local_f_hat=True, now_s=now_s)
@@ -129,12 +132,12 @@ class ControllerCore:
         return []
 
     def check_stale(self, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        """Watchdog: the newest sample has waited too long for its estimate → local ESO."""
+        """Watchdog: no sample answered for ``stale_timeout_s`` → the local ESO flies the newest."""
         p = self._pending
-        if self.using_local or p is None or now_s - p.received_s < self.config.stale_timeout_s:
+        if self.using_local or p is None or now_s - p.waiting_since_s < self.config.stale_timeout_s:
             return []
         self.using_local = True
-        self.events.append(("warning", f"estimate for sample {p.state.seq} not received within "
+        self.events.append(("warning", f"no estimate for sample {p.state.seq} and the ones before it within "
                                        f"{self.config.stale_timeout_s * 1e3:.0f} ms: flying on the local ESO"))
         return self._step(local_f_hat=True, now_s=now_s)
 

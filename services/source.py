@@ -136,9 +136,11 @@ class MocapSource:
             a = math.exp(-2 * math.pi * self.config.vel_cutoff_hz * dt)
             self._vel = a * self._vel + (1 - a) * raw
         self._prev = (t_s, pos)
-        if t_s < self._next_publish_s:
+        if t_s < self._next_publish_s - self.period_s / 4:  # a quarter period of slack for frame jitter
             return None
-        self._next_publish_s = max(self._next_publish_s + self.period_s, t_s - self.period_s / 2)
+        self._next_publish_s += self.period_s
+        if self._next_publish_s < t_s:  # first frame, or frames stopped for a while: re-anchor the grid
+            self._next_publish_s = t_s + self.period_s
         w, x, y, z = quat_wxyz
         body = np.array([
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

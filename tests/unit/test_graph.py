@@ -1,0 +1,75 @@
+"""The service graph is declared once; the launcher and docker-compose.yml agree with it."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import yaml
+
+from cli.main import build_parser
+from cli.up import build_specs
+from runtime.graph import GRAPH, ROLES, Role, check_graph
+from runtime.schema import EstimateMsg, StateMsg
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_every_subscription_has_exactly_one_publisher_of_the_same_type():
+    assert check_graph() == []
+
+
+def test_the_check_catches_a_missing_publisher_a_second_publisher_and_a_wrong_type():
+    orphan = Role("x", "m", "", publishes={}, subscribes={"estimate": EstimateMsg})
+    twice = Role("y", "m", "", publishes={"state": StateMsg}, subscribes={})
+    wrong = Role("z", "m", "", publishes={}, subscribes={"state": EstimateMsg})
+    no_estimator = tuple(r for r in ROLES if r.name != "estimator")
+    assert any("estimate" in p and "nobody" in p for p in check_graph(no_estimator + (orphan,)))
+    assert any("state" in p and "exactly one" in p for p in check_graph(ROLES + (twice,)))
+    assert any("EstimateMsg" in p for p in check_graph(ROLES + (wrong,)))
+
+
+def test_launcher_starts_exactly_the_declared_roles():
+    args = build_parser().parse_args(["up"])
+    specs = build_specs(args)
+    assert [s.name for s in specs] == [r.name for r in ROLES]
+    for spec in specs:
+        i = spec.argv.index("run")
+        assert spec.argv[i + 1] == spec.name
+
+
+def test_launcher_runs_one_set_of_services_per_vehicle_with_one_hub():
+    args = build_parser().parse_args(["up", "--vehicle", "a", "--vehicle", "b"])
+    names = [s.name for s in build_specs(args)]
+    assert names.count("hub") == 1
+    assert {"a/estimator", "b/estimator", "a/controller", "b/source"} <= set(names)
+
+
+def test_docker_compose_has_one_container_per_role_with_explicit_endpoints():
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    services = compose["services"]
+    assert set(services) == set(GRAPH)
+    hub = services["hub"]
+    assert hub["image"].startswith("eclipse/zenoh:")
+    assert "--no-multicast-scouting" in hub["command"]
+    assert "tcp/0.0.0.0:7447" in hub["command"]
+    for name, svc in services.items():
+        if GRAPH[name].bus_role == "router":
+            continue
+        cmd = svc["command"]
+        assert cmd[:2] == ["run", name], name
+        assert cmd[cmd.index("--connect") + 1] == "tcp/hub:7447", name
+        assert "--listen" in cmd, name
+        assert "hub" in svc["depends_on"], name
+        assert any(v.endswith(":/data/networks") for v in svc["volumes"])
+        assert any(v.endswith(":/data/recordings") for v in svc["volumes"])
+        # every option in the command is one the service's real CLI accepts
+        build_parser().parse_args(cmd)
+
+
+def test_every_role_module_has_the_service_entry_points():
+    import importlib
+
+    for r in ROLES:
+        module = importlib.import_module(r.module)
+        assert callable(module.add_arguments) and callable(module.run)
+        module.add_arguments(argparse.ArgumentParser())

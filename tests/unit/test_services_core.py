@@ -1,0 +1,177 @@
+"""The services' step objects, driven directly (no bus)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from runtime.params import Param, ParamSet
+from runtime.schema import EstimateMsg, StateMsg
+from services.controller import ControllerConfig, ControllerCore
+from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, estimator_params, load_flown_network
+from services.source import MocapConfig, MocapSource, frame_matrix
+
+REPO = Path(__file__).resolve().parents[2]
+BASE = str(REPO / "networks" / "base-L1.safetensors")
+
+
+def state(seq, z=1.0, t=None):
+    return StateMsg(seq=seq, stamp_s=1.0, t_s=0.02 * (seq + 1) if t is None else t, pos_enu_m=(0.0, 0.0, z),
+                    vel_enu_mps=(0.0, 0.0, 0.0), roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, source="sim")
+
+
+def estimate(seq, fz=0.5, warm=100):
+    return EstimateMsg(seq=seq, stamp_s=1.0, t_s=0.02 * (seq + 1), f_hat_mps2=(0.0, 0.0, fz), f_n_mps2=(0.0, 0.0, fz),
+                       delta_f_hat_mps2=(0.0, 0.0, 0.0), z=(1.0, 0.0, 9.81, 0.0, 0.0), pathway="neural_eso",
+                       network_id="x", warm_ticks=warm)
+
+
+# -- parameters -------------------------------------------------------------------------------
+def test_param_set_refuses_invalid_values_with_the_reason_and_changes_nothing():
+    ps = ParamSet((Param("gain", 1.0, float, "g", lo=0, hi=10), Param("mode", "a", str, "m", choices=("a", "b"))),
+                  check=lambda v: "gain 7 is unlucky" if v["gain"] == 7 else None)
+    for bad, reason in (({"gain": 11}, "outside"), ({"gain": "x"}, "number"), ({"mode": "c"}, "one of"),
+                        ({"nope": 1}, "unknown"), ({"gain": math.nan}, "outside"), ({"gain": 7}, "unlucky"),
+                        ({"gain": 2, "mode": "c"}, "one of")):
+        ok, why, values = ps.request(bad)
+        assert not ok and reason in why
+        assert values == {"gain": 1.0, "mode": "a"}
+        assert ps.take_pending() == {}
+    ok, _, values = ps.request({"gain": 2})
+    assert ok and values["gain"] == 2.0 and ps.effective()["gain"] == 1.0  # not until the tick boundary
+    assert ps.take_pending() == {"gain": 2.0} and ps.effective()["gain"] == 2.0
+
+
+# -- estimator --------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def choice():
+    net, source = load_flown_network(BASE)
+    return NetworkChoice(net, source, str(REPO / "networks"))
+
+
+def test_a_bound_with_a_trained_network_on_disk_loads_it(choice):
+    assert choice.refusal(0.5) is None
+    net, note = choice.network_for(0.5)
+    assert net.lipschitz_bound == 0.5 and "base-L0.5" in note and "trained for" in note
+
+
+def test_a_bound_without_one_scales_the_loaded_network_to_meet_its_certificate(choice):
+    net, note = choice.network_for(0.7)
+    assert net.certified_lipschitz_normalised() <= 0.7 and "scaled" in note
+
+
+def test_a_bound_above_the_training_bound_without_a_network_is_refused(choice):
+    assert "above" in choice.refusal(3.0)
+    assert choice.refusal(2.0) is None  # base-L2 is on disk
+
+
+def test_estimator_core_applies_pathway_and_bound_at_the_next_sample(choice):
+    core = EstimatorCore(EstimatorConfig(network=BASE), choice.loaded, choice)
+    ps = ParamSet(estimator_params(core.config, 1.0), check=core.check)
+    assert not ps.request({"lipschitz_bound": 5.0})[0]
+    out = core.on_state(state(0), 0.0)
+    assert out[0].pathway == "neural_eso" and out[0].warm_ticks == 1
+    assert ps.request({"pathway": "eso", "lipschitz_bound": 0.5})[0]
+    note = core.apply(ps.take_pending())
+    assert "pathway eso" in note and "base-L0.5" in note
+    out = core.on_state(state(1), 0.0)
+    assert out[0].pathway == "eso" and out[0].network_id.endswith("@L0.5")
+    assert core.on_state(state(1), 0.0) == out, "a re-sent sample gets the same answer"
+
+
+def test_lockstep_estimator_waits_for_the_previous_setpoint(choice):
+    from runtime.schema import SetpointMsg
+
+    core = EstimatorCore(EstimatorConfig(network=BASE, lockstep=True), choice.loaded, choice)
+    assert len(core.on_state(state(0), 0.0)) == 1
+    assert core.on_state(state(1), 0.0) == []
+    sp = SetpointMsg(seq=0, stamp_s=1.0, state_stamp_s=1.0, t_s=0.02, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0,
+                     thrust_norm=0.5, thrust_n=9.81, acc_cmd_enu_mps2=(0.0, 0.0, 0.0), estimate_source="estimator")
+    assert [e.seq for e in core.on_setpoint(sp, 0.0)] == [1]
+
+
+# -- controller -------------------------------------------------------------------------------
+def test_controller_pairs_state_and_estimate_in_either_order():
+    core = ControllerCore(ControllerConfig())
+    assert core.on_state(state(0), 0.0) == []
+    (sp, ref), = core.on_estimate(estimate(0), 0.001)
+    assert sp.seq == 0 and sp.estimate_source == "estimator" and ref.segment == "hover"
+    assert core.on_estimate(estimate(1), 0.02) == []
+    (sp, _), = core.on_state(state(1), 0.021)
+    assert sp.seq == 1
+
+
+def test_controller_falls_back_to_its_local_eso_when_the_estimate_is_stale_and_returns_when_warm():
+    cfg = ControllerConfig(stale_timeout_s=0.06, warmup_ticks=25)
+    core = ControllerCore(cfg)
+    t = 0.0
+    for k in range(10):
+        core.on_state(state(k), t)
+        core.on_estimate(estimate(k), t + 0.001)
+        t += 0.02
+    # estimator dies: states keep coming, nothing answers them until the watchdog fires
+    fallback_at = None
+    for k in range(10, 20):
+        out = core.on_state(state(k), t)
+        for step in (0.005 * i for i in range(1, 4)):
+            out += core.check_stale(t + step)
+        if out and fallback_at is None:
+            fallback_at = k
+            assert out[0][0].estimate_source == "local_eso"
+        t += 0.02
+    assert fallback_at is not None and fallback_at <= 13, "within 3 periods of the first missing estimate"
+    assert any(level == "warning" and "local ESO" in text for level, text in core.events)
+    # a restarted estimator that is not warm yet is not used
+    out = core.on_state(state(20), t)
+    assert out[0][0].estimate_source == "local_eso"
+    assert core.on_estimate(estimate(20, warm=3), t) == [] and core.using_local
+    core.on_estimate(estimate(20, warm=30), t)
+    assert not core.using_local
+    (sp, _), = core.on_state(state(21), t + 0.02) or core.on_estimate(estimate(21), t + 0.021)
+    assert sp.estimate_source == "estimator"
+
+
+def test_controller_gain_change_keeps_the_force_continuous():
+    core = ControllerCore(ControllerConfig())
+    core.on_state(state(0, z=0.9), 0.0)
+    (sp0, _), = core.on_estimate(estimate(0, fz=0.0), 0.0)
+    core.apply_gains({"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 40.0, "kd_z": 6.0})
+    core.on_state(state(1, z=0.9), 0.02)
+    (sp1, _), = core.on_estimate(estimate(1, fz=0.0), 0.02)
+    assert abs(sp1.thrust_n - sp0.thrust_n) <= 40.0 * 0.02 + 1e-9
+
+
+def test_mission_commands_take_effect_at_the_next_sample():
+    core = ControllerCore(ControllerConfig(mission="hover"))
+    core.on_state(state(0), 0.0)
+    core.on_estimate(estimate(0), 0.0)
+    assert core.command("fly_to_mars", {})[0] is False
+    assert core.command("land", {})[0]
+    core.on_state(state(1), 0.02)
+    (_, ref), = core.on_estimate(estimate(1), 0.02)
+    assert ref.segment == "land"
+
+
+# -- motion capture mapping -------------------------------------------------------------------
+def test_mocap_y_up_frame_maps_to_enu_and_velocity_follows():
+    src = MocapSource(MocapConfig(frame="y_up", vel_cutoff_hz=1e6), rate_hz=50.0)
+    # y-up frame: 1 m above the floor is y = 1; "towards the operator" z = -2 is 2 m north (ENU y)
+    msg = src.frame(0.0, np.array([0.5, 1.0, -2.0]), (1.0, 0.0, 0.0, 0.0))
+    assert msg.pos_enu_m == pytest.approx((0.5, 2.0, 1.0))
+    assert (msg.roll_rad, msg.pitch_rad, msg.yaw_rad) == pytest.approx((0, 0, 0))
+    assert src.frame(0.01, np.array([0.5, 1.01, -2.0]), (1.0, 0.0, 0.0, 0.0)) is None  # between control ticks
+    msg = src.frame(0.02, np.array([0.5, 1.02, -2.0]), (1.0, 0.0, 0.0, 0.0))
+    assert msg.vel_enu_mps == pytest.approx((0.0, 0.0, 1.0)) and msg.t_s == pytest.approx(0.02)
+    # a yaw of 90° about the mocap's up axis (y) is a yaw of 90° in ENU
+    c = math.cos(math.pi / 4)
+    msg = src.frame(0.04, np.array([0.5, 1.02, -2.0]), (c, 0.0, c, 0.0))
+    assert msg.yaw_rad == pytest.approx(math.pi / 2)
+
+
+def test_mocap_frame_must_be_a_rotation():
+    assert frame_matrix("1 0 0 0 1 0 0 0 1").tolist() == np.eye(3).tolist()
+    for bad in ("2 0 0 0 1 0 0 0 1", "1 0 0 0 1 0 0 0 -1", "zup", "1 2 3"):
+        with pytest.raises(ValueError):
+            frame_matrix(bad)
