@@ -18,6 +18,7 @@ $(STAMP): pyproject.toml
 
 demo: setup
 	$(VENV)/bin/neso experiment paper --trials 5 --plots out/plots --json out/paper.json --details out/paper-details.json
+	$(VENV)/bin/neso up --scenario nominal_landing --mission landing_test --duration 12
 
 test: setup
 	$(PY) -m pytest
