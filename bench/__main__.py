@@ -3,7 +3,9 @@
 Rows: simulator speed as a multiple of real time (hover, 20 s); the estimator + controller
 tick; network inference at batch 1; and the whole ``neso experiment paper`` pipeline
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
-Pass ``--quick`` to skip the full pipeline.
+Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
+ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
+Pass ``--quick`` to skip the paper pipeline and shorten the bus section (10 s flights, 3 s floors).
 """
 from __future__ import annotations
 
@@ -40,14 +42,16 @@ def bench_tick() -> tuple[float, float]:
 
 
 def main(argv: list[str]) -> int:
+    from bench.bus_latency import COLUMNS, FOOTNOTE, bus_latency_rows
     from sim.quadrotor import sim_speed_x_real_time
 
+    quick = "--quick" in argv
     rows = []
     rows.append(("simulator, hover 20 s", f"{sim_speed_x_real_time(20.0):.0f}× real time"))
     tick_us, predict_us = bench_tick()
     rows.append(("estimator + controller tick (Neural-ESO)", f"{tick_us:.1f} µs"))
     rows.append(("network inference, batch 1 (5→20→25→10→1)", f"{predict_us:.1f} µs"))
-    if "--quick" not in argv:
+    if not quick:
         from sim.experiments import PaperConfig, run_paper
 
         t0 = time.perf_counter()
@@ -56,12 +60,18 @@ def main(argv: list[str]) -> int:
         rows.append(("neso experiment paper --trials 5 (target < 60 s, limit 180 s)", f"{total:.1f} s"))
         for stage, secs in run.details["timing_s"].items():
             rows.append((f"  stage {stage}", f"{secs:.1f} s"))
-    width = max(len(r[0]) for r in rows)
-    print(f"{'benchmark'.ljust(width)}  result")
-    print(f"{'-' * width}  ------")
-    for name, value in rows:
-        print(f"{name.ljust(width)}  {value}")
+    _print_table(("benchmark", "result"), rows)
+    print(flush=True)
+    _print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
+    print(FOOTNOTE)
     return 0
+
+
+def _print_table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
+    """Left-aligned columns, two spaces apart, a rule under the header."""
+    widths = [max(len(str(r[i])) for r in (header, *rows)) for i in range(len(header))]
+    for row in (header, tuple("-" * w for w in widths), *rows):
+        print("  ".join(str(cell).ljust(w) for cell, w in zip(row, widths)).rstrip(), flush=True)
 
 
 if __name__ == "__main__":

@@ -199,13 +199,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="mission started with the flight (default hover)")
     parser.add_argument("--rate", type=float, default=50.0, help="control rate Hz (must match the source)")
     parser.add_argument("--stale-periods", type=float, default=3.0,
-                        help="periods the newest sample waits for its estimate before the local ESO flies")
+                        help="periods without an answered sample before the local ESO flies (at least 20 ms)")
     parser.add_argument("--omega-o", type=float, default=15.0, help="local ESO bandwidth rad/s")
 
 
 def config_from_args(args) -> ControllerConfig:
     dt = 1.0 / args.rate
-    stale = 2.0 if getattr(args, "lockstep", False) else args.stale_periods * dt
+    # at high rates a few periods are shorter than one scheduling hiccup of a 2-core VM: floor 20 ms
+    stale = 2.0 if getattr(args, "lockstep", False) else max(args.stale_periods * dt, 0.02)
     return ControllerConfig(control=replace(ControlConfig(), dt_s=dt), mission=args.mission, omega_o_rps=args.omega_o,
                             stale_timeout_s=stale)
 
