@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import signal
 import sys
 import threading
@@ -168,7 +169,7 @@ class Node:
     def start(self) -> None:
         """Print the config, answer parameter and command queries, report health, then declare
         the liveliness token: a service is "alive" once it can do its job."""
-        self.log(f"vehicle {self.keys.vehicle}, keys under {self.keys.prefix}/, pid {__import__('os').getpid()}")
+        self.log(f"vehicle {self.keys.vehicle}, keys under {self.keys.prefix}/, pid {os.getpid()}")
         if self.config is not None:
             self.log("config " + describe_config(self.config))
         if self.params is not None:

@@ -65,9 +65,6 @@ class ParamSet:
         self._values = values
         self._pending: dict[str, Any] = {}
 
-    def set_check(self, check: Callable[[dict[str, Any]], str | None]) -> None:
-        self._check = check
-
     def _spec(self, name: str) -> Param:
         try:
             return self.specs[name]
@@ -108,6 +105,3 @@ class ParamSet:
             self._values.update(self._pending)
             self._pending = {}
             return changed
-
-    def has_pending(self) -> bool:
-        return bool(self._pending)

@@ -35,6 +35,9 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 import msgpack
+import numpy as np
+
+from neso.types import StateMeasurement
 
 SCHEMA_VERSION = 1
 ROOT = "neso"
@@ -435,17 +438,11 @@ class Keys:
         """All services' keys of one kind (``event``, ``health``, ``alive``, ``params``)."""
         return f"{self.prefix}/{kind}/*"
 
-    @staticmethod
-    def all_vehicles(kind: str) -> str:
-        return f"{ROOT}/*/{kind}/*"
 
-
-def vehicle_and_service(key: str) -> tuple[str, str]:
-    """(vehicle, service) of a per-service key such as ``neso/uav1/health/estimator``."""
-    parts = str(key).split("/")
-    if len(parts) != 4 or parts[0] != ROOT:
-        raise ValueError(f"{key!r} is not a per-service key")
-    return parts[1], parts[3]
+def state_measurement(msg: StateMsg):
+    """The ``neso`` measurement a state message carries (arrays of shape (3,))."""
+    return StateMeasurement(t_s=msg.t_s, pos_enu_m=np.array(msg.pos_enu_m), vel_enu_mps=np.array(msg.vel_enu_mps),
+                            roll_rad=msg.roll_rad, pitch_rad=msg.pitch_rad, yaw_rad=msg.yaw_rad)
 
 
 def vec(x) -> tuple[float, ...]:

@@ -20,9 +20,9 @@ from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.mission import COMMANDS, Mission, MissionConfig
-from neso.types import AttitudeSetpoint, StateMeasurement, VehicleModel
+from neso.types import AttitudeSetpoint, StateMeasurement
 from runtime.params import Param, ParamSet
-from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg, vec
+from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 _KEEP = 64  # samples of unmatched states/estimates kept
 
@@ -101,8 +101,7 @@ class ControllerCore:
             return self._last_output if self._last_stepped == state.seq else []  # a re-sent sample
         if 0 < state.seq < self._last_seq:
             return []  # late
-        meas = StateMeasurement(t_s=state.t_s, pos_enu_m=np.array(state.pos_enu_m), vel_enu_mps=np.array(state.vel_enu_mps),
-                                roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad)
+        meas = state_measurement(state)
         if self._last_seq < 0 or state.seq < self._last_seq:
             self._begin_flight(state, meas)
         self._last_seq = state.seq

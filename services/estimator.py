@@ -28,9 +28,8 @@ from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.features import N_FEATURES
 from neso.netfile import NetworkFileError, load_network
 from neso.network import LipschitzMLP
-from neso.types import StateMeasurement
 from runtime.params import Param
-from runtime.schema import EstimateMsg, SetpointMsg, StateMsg, vec
+from runtime.schema import EstimateMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 DEFAULT_NETWORK = "networks/base-L1.safetensors"
 _KEEP = 64
@@ -158,8 +157,7 @@ class EstimatorCore:
         return self._process(state, now_s)
 
     def _process(self, state: StateMsg, now_s: float) -> list[EstimateMsg]:
-        meas = StateMeasurement(t_s=state.t_s, pos_enu_m=np.array(state.pos_enu_m), vel_enu_mps=np.array(state.vel_enu_mps),
-                                roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad)
+        meas = state_measurement(state)
         if self._last_seq < 0 or state.seq < self._last_seq:  # first sample, or a new flight
             applied = self._hover if state.seq == 0 else (self._latest_applied or self._hover)
             self._applied.clear()
