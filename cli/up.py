@@ -51,6 +51,8 @@ def build_specs(args) -> list[ProcessSpec]:
     vehicles = args.vehicle or ["uav1"]
     specs = []
     for role in ROLES:
+        if role.enabled_by and not getattr(args, role.enabled_by):
+            continue
         if role.bus_role == "router":
             argv = python_module_argv("cli.main", "run", role.name, "--listen", args.hub)
             if args.low_latency:

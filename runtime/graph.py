@@ -23,6 +23,8 @@ class Role:
     publishes: dict[str, type[Message]]
     subscribes: dict[str, type[Message]]
     bus_role: str = "peer"  # "router" for the hub
+    per_vehicle: bool = True  # False: one process for the whole bus (it watches every vehicle)
+    enabled_by: str = ""  # `neso up` starts it only when this boolean option is set ("": always)
 
 
 def _topics(*names: str) -> dict[str, type[Message]]:

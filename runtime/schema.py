@@ -8,6 +8,9 @@ Keys (one vehicle ``<v>``; several vehicles share a bus under their own prefixes
 ``neso/<v>/estimate``                 EstimateMsg      estimator → controller (answers state ``seq``)
 ``neso/<v>/setpoint``                 SetpointMsg      controller → source/vehicle, estimator
 ``neso/<v>/reference``                ReferenceMsg     controller → anyone watching
+``neso/<v>/telemetry``                TelemetryMsg     px4_gateway → anyone watching (vehicle's own report)
+``neso/<v>/recording``                RecordingMsg     recorder → anyone watching
+``neso/<v>/network``                  NetworkMsg       estimator → anyone watching (active/candidate)
 ``neso/<v>/event/<service>``          EventMsg         what a service wants an operator to know
 ``neso/<v>/health/<service>``         HealthMsg        1 Hz: rate, latency, rejected, staleness
 ``neso/<v>/alive/<service>``          (liveliness)     token while the service runs
@@ -383,6 +386,68 @@ class CommandReply(Message):
     message: str = f(_text(max_len=4096), default="")
 
 
+@dataclass(frozen=True, slots=True)
+class TelemetryMsg(Message):
+    """What a real (or MAVLink-simulated) vehicle reports through the PX4 gateway, about 10 Hz.
+    Attitude in ENU/FLU like every other message (the gateway converts from PX4's NED/FRD);
+    ``pos_enu_m``/``vel_enu_mps``: PX4's own position estimate; ``battery_remaining``: 0–1, −1
+    unknown; ``hover_thrust_norm``: the gateway's learned hover thrust (0–1); ``setpoint_age_s``:
+    seconds since the last controller setpoint (−1: none yet); ``failsafe``: ``""``, ``hold`` or
+    ``land`` when the gateway acted on its own."""
+
+    TYPE: ClassVar[str] = "telemetry"
+    stamp_s: float = f(_STAMP)
+    connected: bool = f(_flag)
+    armed: bool = f(_flag)
+    in_air: bool = f(_flag)
+    flight_mode: str = f(_text(max_len=32))
+    roll_rad: float = f(_ANGLE)
+    pitch_rad: float = f(_ANGLE)
+    yaw_rad: float = f(_ANGLE)
+    pos_enu_m: tuple = f(_POS)
+    vel_enu_mps: tuple = f(_VEL)
+    battery_v: float = f(_number(0.0, 100.0))
+    battery_remaining: float = f(_number(-1.0, 1.0))
+    hover_thrust_norm: float = f(_number(0.0, 1.0))
+    setpoint_age_s: float = f(_number(-1.0))
+    failsafe: str = f(_text(("", "hold", "land")))
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingMsg(Message):
+    """The recorder's state, 1 Hz and on every change. ``flight``: flight id (empty when idle);
+    ``segment``: 0 for a flight's first file, +1 for each restart of the recorder within it;
+    ``path``: the ``.rrd`` being written; ``dropped``: messages not written (queue full)."""
+
+    TYPE: ClassVar[str] = "recording"
+    stamp_s: float = f(_STAMP)
+    recording: bool = f(_flag)
+    flight: str = f(_text())
+    segment: int = f(_SEQ)
+    path: str = f(_text(max_len=1024))
+    duration_s: float = f(_number(0.0))
+    size_bytes: int = f(_SEQ)
+    dropped: int = f(_SEQ)
+
+
+@dataclass(frozen=True, slots=True)
+class NetworkMsg(Message):
+    """The estimator's networks, 1 Hz and on every change. ``active``/``candidate``/``previous``:
+    maps with at least ``id``; ``active`` also ``source`` (where it came from: file, registry,
+    scaled), ``lipschitz_norm`` and ``lipschitz_phys`` (certified bound, normalised and
+    (m/s²)/unit z); ``candidate`` is empty when there is none and else carries ``state``
+    (``shadow``) and the gate's findings. ``shadow_error_rms_mps2``: the candidate's RMS error
+    against f̂ over the shadow window (−1: no candidate)."""
+
+    TYPE: ClassVar[str] = "network"
+    stamp_s: float = f(_STAMP)
+    seq: int = f(_SEQ)
+    active: dict = f(_mapping)
+    candidate: dict = f(_mapping)
+    previous: dict = f(_mapping)
+    shadow_error_rms_mps2: float = f(_number(-1.0))
+
+
 # -- keys -----------------------------------------------------------------------------------------
 # Stream topics: name → message type. The per-service keys (event, health, alive, param,
 # params, cmd) exist for every service and are built by Keys.
@@ -392,6 +457,9 @@ TOPICS: dict[str, type[Message]] = {
     "estimate": EstimateMsg,
     "setpoint": SetpointMsg,
     "reference": ReferenceMsg,
+    "telemetry": TelemetryMsg,
+    "recording": RecordingMsg,
+    "network": NetworkMsg,
 }
 
 
@@ -437,6 +505,19 @@ class Keys:
     def every(self, kind: str) -> str:
         """All services' keys of one kind (``event``, ``health``, ``alive``, ``params``)."""
         return f"{self.prefix}/{kind}/*"
+
+
+def any_vehicle(suffix: str) -> str:
+    """A key expression matching ``suffix`` (e.g. ``state``, ``health/*``) of every vehicle."""
+    return f"{ROOT}/*/{suffix}"
+
+
+def vehicle_of(key: str) -> str:
+    """The vehicle name in a key expression ``neso/<v>/...`` (ValueError if it is not one)."""
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[0] != ROOT:
+        raise ValueError(f"{key!r} is not a key under {ROOT}/<vehicle>/")
+    return valid_name(parts[1], "vehicle")
 
 
 def state_measurement(msg: StateMsg):

@@ -12,7 +12,8 @@ from neso.estimator import PATHWAYS as METHOD_PATHWAYS
 from runtime import schema
 from runtime.schema import (PATHWAYS, SCHEMA_VERSION, CommandReply, CommandRequest, EstimateMsg, EventMsg, HealthMsg,
                             Keys, Message, ParamReply, ParamRequest, ParamStateMsg, ReferenceMsg, SchemaError,
-                            SetpointMsg, StateMsg, TruthMsg)
+                            SetpointMsg, StateMsg, TruthMsg, TelemetryMsg, RecordingMsg, NetworkMsg,
+                            any_vehicle, vehicle_of)
 
 V3 = (0.1, -2.5, 1e-300)
 EXAMPLES: list[Message] = [
@@ -34,6 +35,14 @@ EXAMPLES: list[Message] = [
     ParamStateMsg(stamp_s=1.0, service="estimator", seq=10, values={"pathway": "eso"}, note="pathway eso"),
     CommandRequest(name="takeoff", args={"height_m": 1.0}),
     CommandReply(ok=True, service="controller", message="takeoff starts at the next sample"),
+    TelemetryMsg(stamp_s=1.0, connected=True, armed=True, in_air=True, flight_mode="OFFBOARD", roll_rad=0.01,
+                 pitch_rad=-0.02, yaw_rad=1.5, pos_enu_m=V3, vel_enu_mps=V3, battery_v=15.8, battery_remaining=0.8,
+                 hover_thrust_norm=0.42, setpoint_age_s=0.02, failsafe=""),
+    RecordingMsg(stamp_s=1.0, recording=True, flight="uav1-20261121-050000", segment=0,
+                 path="recordings/uav1-20261121-050000.rrd", duration_s=12.5, size_bytes=123456, dropped=0),
+    NetworkMsg(stamp_s=1.0, seq=100, active={"id": "base-L1", "source": "file", "lipschitz_norm": 1.0,
+                                             "lipschitz_phys": 31.6},
+               candidate={}, previous={}, shadow_error_rms_mps2=-1.0),
 ]
 
 
@@ -112,3 +121,11 @@ def test_keys_are_built_in_one_place_and_names_are_checked():
             Keys(bad)
     with pytest.raises(KeyError):
         k.topic("nonsense")
+
+
+def test_any_vehicle_keys_and_the_vehicle_a_key_belongs_to():
+    assert any_vehicle("state") == "neso/*/state"
+    assert vehicle_of(Keys("uav2").topic("state")) == "uav2"
+    assert vehicle_of(Keys("uav2").health("estimator")) == "uav2"
+    with pytest.raises(ValueError):
+        vehicle_of("other/uav1/state")
