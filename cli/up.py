@@ -20,7 +20,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--network", default=None, help="network file (default networks/base-L1.safetensors)")
     p.add_argument("--pathway", default="neural_eso", choices=("neural_eso", "eso", "nn", "none"))
-    p.add_argument("--vehicle", action="append", default=None, help="vehicle name, repeatable (default uav1)")
+    p.add_argument("--name", action="append", default=None, dest="names",
+                   help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
+    p.add_argument("--vehicle", default="direct", choices=("direct",),
+                   help="how setpoints reach the vehicle: direct (the sim source applies them)")
     p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
@@ -48,7 +51,7 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
 
 
 def build_specs(args) -> list[ProcessSpec]:
-    vehicles = args.vehicle or ["uav1"]
+    vehicles = args.names or ["uav1"]
     specs = []
     for role in ROLES:
         if role.enabled_by and not getattr(args, role.enabled_by):
@@ -67,7 +70,7 @@ def build_specs(args) -> list[ProcessSpec]:
 
 
 def run(args) -> int:
-    vehicles = args.vehicle or ["uav1"]
+    vehicles = args.names or ["uav1"]
     supervisor = Supervisor(build_specs(args), echo=lambda line: print(line, flush=True))
     print(f"neso up: hub {args.hub}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)

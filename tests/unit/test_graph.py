@@ -38,7 +38,7 @@ def test_launcher_starts_exactly_the_declared_roles():
 
 
 def test_launcher_runs_one_set_of_services_per_vehicle_with_one_hub():
-    args = build_parser().parse_args(["up", "--vehicle", "a", "--vehicle", "b"])
+    args = build_parser().parse_args(["up", "--name", "a", "--name", "b"])
     names = [s.name for s in build_specs(args)]
     assert names.count("hub") == 1
     assert {"a/estimator", "b/estimator", "a/controller", "b/source"} <= set(names)
