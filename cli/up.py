@@ -27,6 +27,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
+    p.add_argument("--no-trainer", action="store_false", dest="trainer", help="do not start the trainer service")
 
 
 def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
