@@ -14,6 +14,8 @@ SUBCOMMANDS = {
     "run": "cli.run",
     "params": "cli.params",
     "cmd": "cli.cmd",
+    "train": "cli.train",
+    "networks": "cli.networks",
 }
 
 

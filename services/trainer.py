@@ -13,6 +13,8 @@ and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
   ``offer`` (true: send the result to the estimator's gate); ``seed`` (0).
 - ``status``: what the worker is doing and the last result.
 
+Both take an optional ``request`` id: a repeated id gets the first answer (no second job).
+
 Each job ends with an event ``job <n> done: …`` (network id, registry path, val loss, bounds,
 small-gain verdict, stage times, the estimator's answer to the offer) or ``job <n> failed: …``.
 What the active network is comes from the estimator's ``NetworkMsg``.
@@ -202,7 +204,20 @@ def run(args, bus) -> int:
             return False, str(exc)
         return reply.ok, reply.message
 
+    answered: dict[str, tuple[bool, str]] = {}
+
     def on_command(name: str, cmd_args: dict) -> tuple[bool, str]:
+        request = cmd_args.get("request")
+        if isinstance(request, str) and request in answered:
+            return answered[request]  # a retried query: do not queue the job twice
+        result = trainer_command(name, {k: v for k, v in cmd_args.items() if k != "request"})
+        if isinstance(request, str):
+            if len(answered) > 256:
+                answered.clear()
+            answered[request] = result
+        return result
+
+    def trainer_command(name: str, cmd_args: dict) -> tuple[bool, str]:
         if name == "status":
             return True, f"{state['doing']}; queued {jobs.qsize()}; last: {state['last'] or 'none'}"
         if name != "train":
