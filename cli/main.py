@@ -16,6 +16,7 @@ SUBCOMMANDS = {
     "cmd": "cli.cmd",
     "train": "cli.train",
     "networks": "cli.networks",
+    "demo": "cli.demo",
 }
 
 

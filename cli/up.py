@@ -28,6 +28,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
     p.add_argument("--no-trainer", action="store_false", dest="trainer", help="do not start the trainer service")
+    p.add_argument("--registry", default="networks/registry", help="where the trainer stores networks")
 
 
 def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
@@ -48,6 +49,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
             specific += ["--network", args.network]
     elif role == "controller":
         specific = ["--mission", args.mission, "--rate", str(args.rate)]
+    elif role == "trainer":
+        specific = ["--registry", args.registry]
     return python_module_argv("cli.main", "run", role, *common, *specific)
 
 

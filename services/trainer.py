@@ -38,7 +38,7 @@ LABELS = ("tdr", "eso")
 @dataclass(frozen=True)
 class TrainerConfig:
     registry: str = "networks/registry"
-    recordings_dir: str = "recordings"
+    recordings_dir: str = "out/recordings"
     kp: float = ControlConfig().kp[2]
     kd: float = ControlConfig().kd[2]
     omega_o_rps: float = 15.0
