@@ -40,6 +40,9 @@ ROLES: tuple[Role, ...] = (
          publishes=_topics("estimate", "network"), subscribes=_topics("state", "setpoint")),
     Role("controller", "services.controller", "mission + state + f̂ → attitude setpoint (local ESO if f̂ goes stale)",
          publishes=_topics("setpoint", "reference"), subscribes=_topics("state", "estimate")),
+    Role("recorder", "services.recorder", "every message of the vehicle into one Rerun .rrd per flight",
+         publishes=_topics("recording"), subscribes=_topics("state", "truth", "estimate", "setpoint", "reference"),
+         enabled_by="record"),
     Role("trainer", "services.trainer", "trains, certifies and stores networks from recordings; offers them to the estimator",
          publishes={}, subscribes=_topics("network"), enabled_by="trainer"),
 )
