@@ -54,6 +54,8 @@ class TdrReport:
     cycles_after_samples: int = 0
     states: int = 0
     missed_setpoints: int = 0  # states in the window with no setpoint, or one made without the estimator
+    missed_near_swap: int = 0  # of those, within ±25 samples (0.5 s) of the swap
+    missed_by_phase: dict = field(default_factory=dict)  # first lemniscate / training and swap / second lemniscate
     swap_seq: int = -1
     force_step_at_swap_n: float = float("nan")  # largest commanded-force component step, ±5 samples of the swap
     force_step_p50_n: float = float("nan")
@@ -72,7 +74,8 @@ class TdrReport:
             f"({self.cycles_before_samples} samples)",
             f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm "
             f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
-            f"missed deadlines: {self.missed_setpoints} of {self.states} states",
+            f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.missed_near_swap} within 0.5 s "
+            f"of the swap; by phase {self.missed_by_phase})",
             f"commanded force step at the swap {self.force_step_at_swap_n:.3f} N (normal p50 {self.force_step_p50_n:.3f}, "
             f"p99 {self.force_step_p99_n:.3f}, limit {FORCE_STEP_LIMIT_N:.3f}); f̂ step at the swap "
             f"{self.f_hat_step_at_swap_mps2:.4f} m/s² (normal p99 {self.f_hat_step_p99_mps2:.4f})",
@@ -87,20 +90,18 @@ def _force(sp) -> np.ndarray:
 
 
 def lemniscate_runs(references) -> list[tuple[int, int]]:
-    """(first seq, last seq) of each contiguous run of the ``lemniscate`` segment, in order."""
-    runs, start, prev = [], None, None
+    """(first seq, last seq) of each run of the ``lemniscate`` segment, in order: a run ends at
+    the first reference of another segment (samples whose reference was not seen do not end it)."""
+    runs, start, last = [], None, None
     for m in sorted(references, key=lambda m: m.seq):
         if m.segment == "lemniscate":
-            if start is None or (prev is not None and m.seq != prev + 1 and m.seq - prev > 5):
-                if start is not None:
-                    runs.append((start, prev))
-                start = m.seq
-            prev = m.seq
+            start = m.seq if start is None else start
+            last = m.seq
         elif start is not None:
-            runs.append((start, prev))
-            start, prev = None, None
+            runs.append((start, last))
+            start = None
     if start is not None:
-        runs.append((start, prev))
+        runs.append((start, last))
     return runs
 
 
@@ -122,7 +123,13 @@ def analyse(probe, first_run, second_run, swap_seq: int, report: TdrReport) -> T
     lo, hi = first_run[0], second_run[1]
     states = {m.seq for m in probe.get("state") if lo <= m.seq <= hi}
     good = {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi and m.estimate_source == "estimator"}
-    report.states, report.missed_setpoints = len(states), len(states - good)
+    missed = states - good
+    report.states, report.missed_setpoints = len(states), len(missed)
+    report.missed_near_swap = sum(1 for k in missed if abs(k - swap_seq) <= 25)
+    report.missed_by_phase = {
+        "first lemniscate": sum(1 for k in missed if k <= first_run[1]),
+        "between (training, shadow, swap)": sum(1 for k in missed if first_run[1] < k < second_run[0]),
+        "second lemniscate": sum(1 for k in missed if k >= second_run[0])}
     sps = {m.seq: m for m in probe.get("setpoint") if lo <= m.seq <= hi}
     steps = {k: float(np.max(np.abs(_force(sps[k]) - _force(sps[k - 1])))) for k in sps if k - 1 in sps}
     report.swap_seq = swap_seq
@@ -204,15 +211,17 @@ class _Events:
             s.undeclare()
 
 
-def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None) -> TdrReport:
-    """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``."""
+def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
+                 fly_after: bool = True) -> TdrReport:
+    """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
+    ``fly_after`` False: stop once the new network flies (the bench: stage times only)."""
     from runtime.bus import BusConfig, open_session
     from runtime.client import command
     from runtime.schema import Keys
 
     keys = Keys("uav1")
     rec_dir, registry = os.path.join(workdir, "recordings"), os.path.join(workdir, "registry")
-    argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "lemniscate",
+    argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
             "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry]
     up_log = open(os.path.join(workdir, "neso-up.log"), "w")
     up = subprocess.Popen(argv, stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True,
@@ -229,11 +238,9 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         def cmd(service, name, timeout_s=5.0, **args):
             return command(session, keys, service, name, dict(args, request=uuid.uuid4().hex), timeout_s=timeout_s)
 
+        probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
         log("flying the lemniscate under Neural-ESO with the base network, recording")
-        probe.wait_for("reference", lambda m: m.segment == "lemniscate", 60.0)
-        probe.wait_for("reference", lambda m: m.segment != "lemniscate" and any(
-            r.segment == "lemniscate" for r in probe.get("reference")[-3000:]), 60.0)
-        (first_run,) = lemniscate_runs(probe.get("reference"))
+        first_run = fly_lemniscate(probe, cmd)
         path = probe.wait_for("recording", lambda m: m.recording and m.path, 5.0).path
         t_stop = time.monotonic()
         reply = cmd("recorder", "stop")
@@ -259,24 +266,24 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         t_promote = time.monotonic()
         reply = cmd("estimator", "promote")
         assert reply.ok, reply.message
-        first_new = probe.wait_for("estimate", lambda m: m.network_id == cand["id"] and m.seq > before, 5.0)
+        probe.wait_for("estimate", lambda m: m.network_id == cand["id"] and m.seq > before, 5.0)
         t_promoted = time.monotonic()
+        swap_seq = min(m.seq for m in probe.get("estimate") if m.network_id == cand["id"])
         report.stage_s = {"stop recording": t_train - t_stop, "train job (dataset, train, certify, store, offer)":
                           t_offered - t_train, "promote": t_promoted - t_promote,
                           "recording stopped -> promoted (without the 2 s shadow)":
                           (t_offered - t_stop) + (t_promoted - t_promote)}
         report.stage_s.update({f"trainer {k}": float(v) for k, v in _stage_times(done).items()})
+        if not fly_after:
+            events.close()
+            probe.close()
+            return report
         log("promoted; flying the lemniscate again")
         cmd("recorder", "start")
-        reply = cmd("controller", "lemniscate")
-        assert reply.ok, reply.message
-        probe.wait_for("reference", lambda m: m.segment == "lemniscate" and m.seq > first_new.seq, 60.0)
-        probe.wait_for("reference", lambda m: m.segment != "lemniscate" and m.seq > first_new.seq + 200 and any(
-            r.segment == "lemniscate" and r.seq > first_new.seq for r in probe.get("reference")[-3000:]), 60.0)
-        runs = lemniscate_runs(probe.get("reference"))
-        assert len(runs) == 2, runs
+        second_run = fly_lemniscate(probe, cmd)
+        runs = [first_run, second_run]
         assert all(m.network_id == cand["id"] for m in probe.get("estimate") if runs[1][0] <= m.seq <= runs[1][1])
-        analyse(probe, runs[0], runs[1], first_new.seq, report)
+        analyse(probe, runs[0], runs[1], swap_seq, report)
         events.close()
         probe.close()
         return report
@@ -290,6 +297,18 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
             os.killpg(up.pid, signal.SIGKILL)
             up.wait()
         up_log.close()
+
+
+def fly_lemniscate(probe, cmd) -> tuple[int, int]:
+    """Command the lemniscate mission and wait until it is over: its (first seq, last seq)."""
+    after = probe.get("reference")[-1].seq
+    reply = cmd("controller", "lemniscate")
+    assert reply.ok, reply.message
+    start = probe.wait_for("reference", lambda m: m.segment == "lemniscate" and m.seq > after, 30.0).seq
+    probe.wait_for("reference", lambda m: m.segment != "lemniscate" and m.seq > start, 90.0)
+    runs = [r for r in lemniscate_runs(probe.get("reference")) if r[0] >= start]
+    assert len(runs) == 1, f"one lemniscate run expected after sample {start}: {runs}"
+    return runs[0]
 
 
 def _stage_times(summary: str) -> dict:

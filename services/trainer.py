@@ -188,6 +188,7 @@ def run(args, bus) -> int:
     from runtime.client import ServiceUnavailable, command
     from runtime.node import Node, run_node
 
+    os.nice(10)  # training shares the machine with the control loop: it yields the CPU to it
     config = TrainerConfig(registry=args.registry, recordings_dir=args.recordings_dir, kp=args.kp, kd=args.kd,
                            omega_o_rps=args.omega_o)
     node = Node("trainer", vehicle=args.vehicle, bus=bus, config=config)

@@ -122,7 +122,8 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
     before = flight.latest("estimate").seq
     reply = flight.cmd("promote")
     assert reply.ok, reply.message
-    first = flight.probe.wait_for("estimate", lambda m: m.network_id == "cand-5", 2.0)
+    flight.probe.wait_for("estimate", lambda m: m.network_id == "cand-5", 2.0)
+    first = min((m for m in flight.probe.get("estimate") if m.network_id == "cand-5"), key=lambda m: m.seq)
     assert first.seq <= before + 10
     time.sleep(0.5)
     sps = sorted((m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10),
