@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
+import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,23 +104,43 @@ def _property_values(batch) -> dict:
     return out
 
 
-def read_recording(path: str | Path) -> Recording:
-    """Every channel of every vehicle in ``path`` (also a file cut short by a crash)."""
+_TORN = re.compile(r"start (\d+), length \d+\) exceeds file size")
+_FRAME_HEADER_BYTES = 16  # an .rrd message frame: kind u64 + length u64, then the payload
+
+
+def _open_chunks(path: Path, scratch: list[Path]):
+    """The chunk stream of ``path``; a file whose last frame was torn by a crash is read up to
+    the frame before it (from a copy: the file itself is left as it is)."""
     from rerun.chunk import RrdReader
 
+    try:
+        return RrdReader(str(path)).stream()
+    except Exception as exc:  # the native reader raises RuntimeError/ValueError/OSError
+        torn = _TORN.search(str(exc))
+        if torn is None:
+            raise
+    cut = max(0, int(torn.group(1)) - _FRAME_HEADER_BYTES)
+    fd, tmp = tempfile.mkstemp(suffix=".rrd", prefix=".neso-read-")
+    scratch.append(Path(tmp))
+    with os.fdopen(fd, "wb") as out, open(path, "rb") as src:
+        out.write(src.read(cut))
+    return RrdReader(tmp).stream()
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Every channel of every vehicle in ``path`` (also a file cut short by a crash)."""
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"{path}: no such file")
     if path.stat().st_size == 0:
         raise RecordingError(f"{path}: empty file (the recorder died before its first write?)")
+    scratch: list[Path] = []
     props: dict[str, dict] = {}
     raw: dict[tuple[str, str, str], list[tuple[np.ndarray, object]]] = {}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "no footer": expected for a file cut short
-            reader = RrdReader(str(path))
-            chunks = reader.stream()
-            for chunk in chunks:
+            for chunk in _open_chunks(path, scratch):
                 ep = str(chunk.entity_path)
                 if ep.startswith("/__properties"):
                     props.setdefault(ep.rsplit("/", 1)[-1] if ep != "/__properties" else "recording", {}).update(
@@ -137,6 +159,9 @@ def read_recording(path: str | Path) -> Recording:
     except Exception as exc:  # the native reader raises its own types
         if not raw and not props:
             raise RecordingError(f"{path}: not a readable Rerun recording ({type(exc).__name__}: {exc})") from None
+    finally:
+        for tmp in scratch:
+            tmp.unlink(missing_ok=True)
     rec = Recording(str(path), props)
     grouped: dict[tuple[str, str], dict[str, object]] = {}
     for (vehicle, channel, name), parts in raw.items():
