@@ -304,7 +304,8 @@ def fly_lemniscate(probe, cmd) -> tuple[int, int]:
     after = probe.get("reference")[-1].seq
     reply = cmd("controller", "lemniscate")
     assert reply.ok, reply.message
-    start = probe.wait_for("reference", lambda m: m.segment == "lemniscate" and m.seq > after, 30.0).seq
+    probe.wait_for("reference", lambda m: m.segment == "lemniscate" and m.seq > after, 30.0)
+    start = min(m.seq for m in probe.get("reference") if m.segment == "lemniscate" and m.seq > after)
     probe.wait_for("reference", lambda m: m.segment != "lemniscate" and m.seq > start, 90.0)
     runs = [r for r in lemniscate_runs(probe.get("reference")) if r[0] >= start]
     assert len(runs) == 1, f"one lemniscate run expected after sample {start}: {runs}"
