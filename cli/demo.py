@@ -55,6 +55,8 @@ class TdrReport:
     states: int = 0
     missed_setpoints: int = 0  # states in the window with no setpoint, or one made without the estimator
     missed_near_swap: int = 0  # of those, within ±25 samples (0.5 s) of the swap
+    states_without_setpoint: int = 0  # of those, no setpoint at all (the rest: the controller's local ESO flew)
+    swap_answered: bool = False  # the swap sample and the one after it got setpoints made with the estimator's f̂
     missed_by_phase: dict = field(default_factory=dict)  # first lemniscate / training and swap / second lemniscate
     swap_seq: int = -1
     force_step_at_swap_n: float = float("nan")  # largest commanded-force component step, ±5 samples of the swap
@@ -74,8 +76,9 @@ class TdrReport:
             f"({self.cycles_before_samples} samples)",
             f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm "
             f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
-            f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.missed_near_swap} within 0.5 s "
-            f"of the swap; by phase {self.missed_by_phase})",
+            f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.states_without_setpoint} without "
+            f"any setpoint, the rest flown on the controller's local ESO; {self.missed_near_swap} within 0.5 s of the "
+            f"swap, swap sample answered: {self.swap_answered}; by phase {self.missed_by_phase})",
             f"commanded force step at the swap {self.force_step_at_swap_n:.3f} N (normal p50 {self.force_step_p50_n:.3f}, "
             f"p99 {self.force_step_p99_n:.3f}, limit {FORCE_STEP_LIMIT_N:.3f}); f̂ step at the swap "
             f"{self.f_hat_step_at_swap_mps2:.4f} m/s² (normal p99 {self.f_hat_step_p99_mps2:.4f})",
@@ -124,6 +127,8 @@ def analyse(probe, first_run, second_run, swap_seq: int, report: TdrReport) -> T
     states = {m.seq for m in probe.get("state") if lo <= m.seq <= hi}
     good = {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi and m.estimate_source == "estimator"}
     missed = states - good
+    report.states_without_setpoint = len(states - {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi})
+    report.swap_answered = swap_seq in good and swap_seq + 1 in good
     report.states, report.missed_setpoints = len(states), len(missed)
     report.missed_near_swap = sum(1 for k in missed if abs(k - swap_seq) <= 25)
     report.missed_by_phase = {
@@ -245,8 +250,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         t_stop = time.monotonic()
         reply = cmd("recorder", "stop")
         assert reply.ok, reply.message
-        probe.wait_for("recording", lambda m: not m.recording, 10.0)
-        time.sleep(0.5)  # the recorder rewrites the closed file (rrd optimize) atomically
+        probe.wait_for("recording", lambda m: not m.recording and m.stamp_s > t_stop, 10.0)
         report.recording = path
         log(f"recorded {path}; training TDR from it")
         t_train = time.monotonic()
