@@ -163,8 +163,8 @@ class EstimatorCore:
             net, note = self.choice.network_for(changed["lipschitz_bound"])
             self.estimator.set_network(net)
             self.network_id = f"{net.metadata.get('id', 'unnamed')}@L{changed['lipschitz_bound']:g}"
-            path = note.split()[1] if note.startswith("loaded ") else self.choice.source
-            self.active_info = _describe(net, "file" if note.startswith("loaded ") else "scaled", path,
+            path = next((p for n, p in self.choice.trained.values() if n is net), None)
+            self.active_info = _describe(net, "scaled" if path is None else "file", path or self.choice.source,
                                          self.network_id)
             self.changes += 1
             notes.append(note)

@@ -39,10 +39,11 @@ def end(proc) -> None:
 
 
 class Flight:
-    def __init__(self):
+    def __init__(self, registry):
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.registry = registry
         self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint,
-                         "--no-trainer")
+                         "--no-record", "--registry", registry)
         self.output: list[str] = []
         threading.Thread(target=lambda: self.output.extend(self.proc.stdout), daemon=True).start()
         self._cm = session(peer(self.endpoint))
@@ -65,8 +66,8 @@ class Flight:
 
 
 @pytest.fixture(scope="module")
-def flight():
-    f = Flight()
+def flight(tmp_path_factory):
+    f = Flight(str(tmp_path_factory.mktemp("registry")))
     try:
         f.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 50, 30.0)
         f.probe.wait_for("network", lambda m: m.active.get("id") == "base-L1.0", 5.0)
@@ -142,3 +143,22 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
     net = flight.probe.wait_for("network", lambda m: m.active.get("id") == "base-L1.0" and m.previous, 2.0)
     assert net.previous["id"] == "cand-5"
     assert not flight.cmd("promote").ok, "nothing to promote after a rollback"
+
+
+def test_neso_train_has_the_trainer_train_on_a_recording_and_offer_the_result(flight, tmp_path):
+    from tests.unit.test_recordings import flight_messages, write
+
+    rrd = tmp_path / "eso-flight.rrd"
+    write(rrd, flight_messages(300, pathway="eso"))
+    proc = neso("train", str(rrd), "--label", "eso", "--epochs", "3", "--connect", flight.endpoint)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out
+    assert "job 1 queued" in out and "job 1 done" in out and "offer accepted" in out, out
+    net = flight.probe.wait_for("network", lambda m: m.candidate.get("id", "").startswith("uav1-eso-"), 5.0)
+    assert net.active["id"] == "base-L1.0" and net.candidate["state"] == "shadow"
+    listing = neso("networks", "list", "--registry", flight.registry)
+    out, _ = listing.communicate(timeout=30)
+    assert listing.returncode == 0 and net.candidate["id"] in out and "eso-flight.rrd" in out, out
+    bad = neso("train", str(tmp_path / "missing.rrd"), "--connect", flight.endpoint)
+    out, _ = bad.communicate(timeout=60)
+    assert bad.returncode == 1 and "no such recording" in out, out

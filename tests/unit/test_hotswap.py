@@ -167,3 +167,19 @@ def test_refused_offers_leave_the_active_network_and_candidate_untouched(core, t
         verdict = core.check_offer(path)
         assert not verdict.passed
     assert core.estimator.network is active and core.candidate[1]["id"] == "cand-1"
+
+
+def test_an_l_n_change_shows_where_the_network_came_from_and_is_fixed_after_a_promote(tmp_path):
+    net, source = load_flown_network(BASE)
+    choice = NetworkChoice(net, source, str(REPO / "networks"))
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, choice)
+    core.apply({"lipschitz_bound": 0.5})
+    assert core.active_info["source"] == "file" and core.active_info["path"].endswith("base-L0.5.safetensors")
+    core.apply({"lipschitz_bound": 0.7})
+    assert core.active_info["source"] == "scaled" and core.active_info["path"] == BASE
+    path = str(tmp_path / "cand.safetensors")
+    save_network(path, candidate())
+    core.on_state(state(0), 0.0)
+    core.accept(core.check_offer(path), path)
+    assert core.promote()[0]
+    assert "fixed" in core.check({"lipschitz_bound": 0.3, "pathway": "neural_eso"})
