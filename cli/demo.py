@@ -64,6 +64,8 @@ class TdrReport:
     force_step_p99_n: float = float("nan")
     f_hat_step_at_swap_mps2: float = float("nan")
     f_hat_step_p99_mps2: float = float("nan")
+    shadow_error_rms_mps2: float = float("nan")  # candidate's f_N − f̂ (z) in shadow, just before the promote
+    active_error_rms_mps2: float = float("nan")  # the active network's, same samples
     recording: str = ""
     network_id: str = ""
     trainer_summary: str = ""
@@ -82,6 +84,8 @@ class TdrReport:
             f"commanded force step at the swap {self.force_step_at_swap_n:.3f} N (normal p50 {self.force_step_p50_n:.3f}, "
             f"p99 {self.force_step_p99_n:.3f}, limit {FORCE_STEP_LIMIT_N:.3f}); f̂ step at the swap "
             f"{self.f_hat_step_at_swap_mps2:.4f} m/s² (normal p99 {self.f_hat_step_p99_mps2:.4f})",
+            f"in shadow before the promote: candidate's RMS error against f̂ {self.shadow_error_rms_mps2:.3f} m/s², "
+            f"active network's {self.active_error_rms_mps2:.3f} m/s²",
             f"recording -> promoted network, s: {st}",
         ]
 
@@ -266,6 +270,9 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         report.network_id = cand["id"]
         log(f"candidate {cand['id']} in shadow; promoting")
         time.sleep(2.0)  # shadow: predicting beside the active network
+        shadow = probe.get("network")[-1]
+        report.shadow_error_rms_mps2 = shadow.shadow_error_rms_mps2
+        report.active_error_rms_mps2 = shadow.candidate.get("active_error_rms_mps2", float("nan"))
         before = probe.get("estimate")[-1].seq
         t_promote = time.monotonic()
         reply = cmd("estimator", "promote")

@@ -19,7 +19,8 @@ when refused, and a refusal leaves the active network flying):
   (:func:`neso.hotswap.gate`: readable, finite, same layer shapes, certificate within its bound
   in physical units, validation loss present, trained for this vehicle). A passed one runs in
   **shadow**: it predicts beside the active network every sample, and its RMS error against
-  the flown f̂ (z axis, last 5 s) is in ``NetworkMsg.shadow_error_rms_mps2``.
+  the flown f̂ (z axis, last 5 s) is in ``NetworkMsg.shadow_error_rms_mps2``; the active
+  network's own error over the same samples is ``candidate["active_error_rms_mps2"]``.
 - ``promote``: the candidate becomes the active network at the next sample; Δf̂ absorbs the
   step so f̂ is continuous (:func:`neso.hotswap.absorb_step`). The active one becomes ``previous``.
 - ``rollback``: the previous network flies again, the same bumpless way.
@@ -132,6 +133,7 @@ class EstimatorCore:
         self.candidate: tuple[LipschitzMLP, dict] | None = None
         self.previous: tuple[LipschitzMLP | None, dict] | None = None
         self.shadow = ShadowError(SHADOW_WINDOW)
+        self.active_shadow = ShadowError(SHADOW_WINDOW)  # the active network's error, same samples
         self.swapped = False  # a network from an offer is flying (the L_N parameter no longer picks networks)
         self.changes = 0  # bumped on every network change, so the adapter publishes NetworkMsg at once
         self.estimator = NeuralESO(NeuralEsoConfig(eso=EsoConfig(omega_o_rps=config.omega_o_rps, dt_s=config.dt_s),
@@ -189,6 +191,7 @@ class EstimatorCore:
         info.update(state="shadow", **{k: v for k, v in verdict.findings.items() if k not in info})
         self.candidate = (net, info)
         self.shadow = ShadowError(SHADOW_WINDOW)
+        self.active_shadow = ShadowError(SHADOW_WINDOW)
         self.changes += 1
         return f"candidate {info['id']} in shadow ({verdict.findings.get('layers')}, val_loss {info['val_loss']})"
 
@@ -224,8 +227,12 @@ class EstimatorCore:
         return True, f"candidate {cid} dropped"
 
     def network_msg(self) -> NetworkMsg:
+        candidate = {}
+        if self.candidate is not None:
+            candidate = dict(self.candidate[1], shadow_samples=self.shadow.samples,
+                             active_error_rms_mps2=self.active_shadow.rms())
         return NetworkMsg(stamp_s=time.monotonic(), seq=max(self._last_seq, 0), active=self.active_info,
-                          candidate=self.candidate[1] if self.candidate is not None else {},
+                          candidate=candidate,
                           previous=self.previous[1] if self.previous is not None else {},
                           shadow_error_rms_mps2=self.shadow.rms() if self.candidate is not None else -1.0)
 
@@ -265,6 +272,8 @@ class EstimatorCore:
         self.warm_ticks += 1
         if self.candidate is not None:
             self.shadow.add(self.candidate[0].predict(est.z)[0], est.f_hat[2])
+            active = self.estimator.network
+            self.active_shadow.add(active.predict(est.z)[0] if active is not None else 0.0, est.f_hat[2])
         self._last_output = EstimateMsg(
             seq=state.seq, stamp_s=time.monotonic(), t_s=state.t_s, f_hat_mps2=vec(est.f_hat), f_n_mps2=vec(est.f_n),
             delta_f_hat_mps2=vec(est.delta_f_hat), z=vec(est.z), pathway=est.pathway, network_id=self.network_id,

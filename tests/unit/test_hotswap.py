@@ -144,6 +144,7 @@ def test_offer_shadow_promote_rollback(core, tmp_path):
     msg = core.network_msg()
     assert msg.candidate["id"] == "cand-1" and msg.candidate["state"] == "shadow"
     assert msg.shadow_error_rms_mps2 > 0 and core.shadow.samples == 40
+    assert msg.candidate["shadow_samples"] == 40 and msg.candidate["active_error_rms_mps2"] >= 0
     before = core.on_state(state(60), 0.0)[0]
     ok, _ = core.promote()
     assert ok
