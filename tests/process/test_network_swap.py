@@ -127,9 +127,9 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
     first = min((m for m in flight.probe.get("estimate") if m.network_id == "cand-5"), key=lambda m: m.seq)
     assert first.seq <= before + 10
     time.sleep(0.5)
-    sps = sorted((m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10),
-                 key=lambda m: m.seq)
-    assert len(sps) >= 15 and max_force_step_n(sps) <= 40.0 * PERIOD_S + 1e-6
+    sps = {m.seq: m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10}
+    pairs = [[sps[k - 1], sps[k]] for k in sps if k - 1 in sps]  # consecutive samples only (a loaded machine drops some)
+    assert len(pairs) >= 8 and max(max_force_step_n(p) for p in pairs) <= 40.0 * PERIOD_S + 1e-6
     ests = {m.seq: m for m in flight.probe.get("estimate")}
     jump = abs(ests[first.seq].f_hat_mps2[2] - ests[first.seq - 1].f_hat_mps2[2])
     typical = np.median([abs(ests[k].f_hat_mps2[2] - ests[k - 1].f_hat_mps2[2])
