@@ -60,12 +60,19 @@ def restamped(msg: Message, now_s: float) -> Message:
     return dataclasses.replace(msg, **changes)
 
 
-def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, stop=None, on_progress=None) -> int:
-    """Publish ``schedule`` under ``neso/<vehicle>/`` at the recorded pace × ``speed``; the count published."""
+def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, stop=None, on_progress=None,
+                     wait_for_subscribers_s: float = 2.0) -> int:
+    """Publish ``schedule`` under ``neso/<vehicle>/`` at the recorded pace × ``speed``; the count
+    published. Waits up to ``wait_for_subscribers_s`` for someone to listen (a session that has just
+    opened does not know its subscribers yet, and the first samples would go nowhere)."""
     if not speed > 0:
         raise ValueError(f"speed must be positive, got {speed}")
     keys = Keys(vehicle)
     pubs = {topic: session.declare_publisher(keys.topic(topic), express=True) for topic in {t for _, t, _ in schedule}}
+    deadline = time.monotonic() + wait_for_subscribers_s
+    while time.monotonic() < deadline and not any(p.matching_status.matching for p in pubs.values()):
+        time.sleep(0.02)
+    time.sleep(0.1 if time.monotonic() < deadline else 0.0)  # the other topics' routes come up together
     start = time.monotonic()
     n = 0
     try:
