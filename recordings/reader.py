@@ -205,8 +205,7 @@ def rerun_cli() -> str:
 
 def verify(path: str | Path, timeout_s: float = 60.0) -> tuple[bool, str]:
     """(passed, output) of ``rerun rrd verify``."""
-    out = subprocess.run([rerun_cli(), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=timeout_s,
-                         env=_quiet_env())
+    out = subprocess.run([rerun_cli(), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=timeout_s)
     return out.returncode == 0, (out.stdout + out.stderr).strip()
 
 
@@ -217,15 +216,17 @@ def repair(path: str | Path, output: str | Path | None = None, timeout_s: float 
     until the rewritten file is complete)."""
     path = Path(path)
     target = Path(output) if output else path.with_name(f".{path.stem}.compacting.rrd")
-    out = subprocess.run([rerun_cli(), "rrd", "optimize", str(path), "-o", str(target)], capture_output=True,
-                         text=True, timeout=timeout_s, env=_quiet_env())
+    try:
+        out = subprocess.run([rerun_cli(), "rrd", "optimize", str(path), "-o", str(target)], capture_output=True,
+                             text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        target.unlink(missing_ok=True)
+        raise RecordingError(f"rerun rrd optimize took longer than {timeout_s:g} s on {path}: left as it was") from None
     if out.returncode != 0 or not target.exists():
+        target.unlink(missing_ok=True)
         raise RecordingError(f"rerun rrd optimize failed on {path}: {(out.stdout + out.stderr).strip()[-2000:]}")
     if output is None:
         os.replace(target, path)
         return path
     return target
 
-
-def _quiet_env() -> dict:
-    return dict(os.environ, RERUN_ANALYTICS="0", RERUN_TELEMETRY="0")

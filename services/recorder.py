@@ -159,6 +159,34 @@ class ActiveFlight:
             pass
 
 
+class PendingCompactions:
+    """Files closed at a shutdown, compacted by the next recorder start (a small JSON list)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._lock = threading.Lock()
+
+    def paths(self) -> list[Path]:
+        try:
+            return [Path(p) for p in json.loads(self.path.read_text()) if Path(p).exists()]
+        except (OSError, ValueError):
+            return []
+
+    def _write(self, paths: list[Path]) -> None:
+        if paths:
+            self.path.write_text(json.dumps(sorted({str(p) for p in paths})))
+        else:
+            self.path.unlink(missing_ok=True)
+
+    def add(self, path: Path) -> None:
+        with self._lock:
+            self._write(self.paths() + [path])
+
+    def discard(self, path: Path) -> None:
+        with self._lock:
+            self._write([p for p in self.paths() if p != path])
+
+
 class Recorder:
     """The writer thread's work: decode, track flights, write, report (no Zenoh in here)."""
 
@@ -170,6 +198,9 @@ class Recorder:
         self.vehicle = vehicle
         self.directory = Path(config.directory)
         self.directory.mkdir(parents=True, exist_ok=True)
+        for stale in self.directory.glob(".*.compacting.rrd"):  # a compaction cut short
+            stale.unlink(missing_ok=True)
+        self.pending = PendingCompactions(self.directory / f".{vehicle}.to-compact.json")
         self.tracker = FlightTracker(config)
         self.active = ActiveFlight(self.directory, vehicle)
         self.publish_status = publish_status or (lambda msg: None)
@@ -186,6 +217,7 @@ class Recorder:
         self._last_status = 0.0
         self._stop = threading.Event()
         self._compactions: list[threading.Thread] = []
+        self._repaired: set[Path] = set()
 
     # -- called from Zenoh threads: enqueue only ------------------------------------------
     def offer(self, channel: str, payload: bytes, received_s: float) -> None:
@@ -198,7 +230,18 @@ class Recorder:
         self.queue.put(("cmd", name, None, time.monotonic()))
 
     # -- the writer thread --------------------------------------------------------------
+    def _repair_crashed(self, previous: dict | None) -> None:
+        """The file a crashed recorder was writing has no footer: rewrite it (once)."""
+        path = Path(previous["path"]) if previous and previous.get("path") else None
+        if path is not None and path.exists() and path not in self._repaired:
+            self._repaired.add(path)
+            self._compact(path, "repaired after a crash")
+
     def run(self) -> None:
+        self._repair_crashed(self.active.load())
+        if self.config.compact:
+            for path in self.pending.paths():
+                self._compact(path, "closed at a shutdown")
         next_flush = time.monotonic() + self.config.flush_period_s
         try:
             while not self._stop.is_set():
@@ -267,8 +310,7 @@ class Recorder:
 
         previous = self.active.load()
         resumed = False
-        if previous and previous.get("path") and Path(previous["path"]).exists():
-            self._compact(Path(previous["path"]), "repaired after a crash")  # a crash left it without a footer
+        self._repair_crashed(previous)
         if (previous and previous.get("vehicle") == self.vehicle
                 and time.time() - previous.get("touched_unix_s", 0) <= self.config.resume_window_s
                 and self.tracker.last_seq >= previous.get("last_seq", 0)):
@@ -299,22 +341,21 @@ class Recorder:
                           "path": str(self.writer.path), "last_seq": self.tracker.last_seq,
                           "touched_unix_s": time.time()})
 
-    def _compact(self, path: Path, what: str, wait: bool = False) -> None:
+    def _compact(self, path: Path, what: str) -> None:
+        """Rewrite a closed (or crashed) file with merged chunks, in the background."""
         from recordings.reader import RecordingError, repair
 
         def work() -> None:
             try:
                 repair(path)
+                self.pending.discard(path)
                 self.log(f"{path}: compacted ({what}), {path.stat().st_size / 1e3:.0f} kB")
             except (RecordingError, OSError, subprocess.SubprocessError) as exc:
                 self.log(f"{path}: left as written, could not compact it: {exc}")
 
-        if wait:
-            work()
-        else:
-            thread = threading.Thread(target=work, name="recorder-compact", daemon=True)
-            thread.start()
-            self._compactions.append(thread)
+        thread = threading.Thread(target=work, name="recorder-compact", daemon=True)
+        thread.start()
+        self._compactions.append(thread)
 
     def _end(self, why: str, *, keep_active: bool) -> None:
         if self.writer is None:
@@ -332,8 +373,10 @@ class Recorder:
         self.log(f"flight {self.flight} segment {self.segment} closed: {why}; {w.stats.messages} messages, "
                  f"{w.stats.duration_s:.1f} s, {w.path.stat().st_size / 1e3:.0f} kB")
         self._status(force=True)
-        if self.config.compact:
-            self._compact(w.path, "flight closed", wait=self._stop.is_set())
+        if self.config.compact and not self._stop.is_set():
+            self._compact(w.path, "flight closed")
+        elif self.config.compact:  # shutting down: the launcher allows 2 s, so compact it at the next start
+            self.pending.add(w.path)
 
     def status(self) -> RecordingMsg:
         w = self.writer
@@ -351,6 +394,7 @@ class Recorder:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recordings-dir", default=DEFAULT_DIR, help=f"where flights are written (default {DEFAULT_DIR})")
     parser.add_argument("--flush-period", type=float, default=0.1, help="seconds between flushes to disk (≤ 0.2)")
+    parser.add_argument("--nice", type=int, default=0, help="scheduling niceness added to the recorder (0: none)")
     parser.add_argument("--manual", action="store_true", help="record only between `neso cmd recorder start` and stop")
 
 
@@ -367,6 +411,8 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     config = config_from_args(args)
+    if args.nice:
+        os.nice(args.nice)  # below the control loop's services: on a busy CPU the loop runs first, the queue waits
     node = Node("recorder", vehicle=args.vehicle, bus=bus, config=config)
     put_status = node.publisher("recording")
     services = [r.name for r in ROLES if r.per_vehicle and r.bus_role != "router" and r.name != "recorder"]
@@ -410,6 +456,6 @@ def run(args, bus) -> int:
         node.wait()
         recorder.stop()
         writer_thread.join(10.0)
-        recorder.join_compactions(10.0)
+        recorder.join_compactions(1.0)
 
     return run_node(node, main)
