@@ -6,7 +6,8 @@ and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
 
 - ``train {recordings?, label?, lipschitz_bound?, epochs?, offer?, seed?}``: queue a job; the
   reply says the job number at once. ``recordings``: ``.rrd`` paths (default: the newest one in
-  ``--recordings-dir``); ``label``: ``tdr`` (default; labels f_N + Δf̂, warm-started from the
+  ``--recordings-dir``, which may be the flight still being recorded: it is read up to its last
+  flush); ``label``: ``tdr`` (default; labels f_N + Δf̂, warm-started from the
   network the estimator flies, keeping its normalisation and so its physical bound) or ``eso``
   (labels x̂_3 flown under the ``eso`` pathway, trained from scratch); ``lipschitz_bound``: L_N
   normalised (default: the active network's for ``tdr``, 1.0 for ``eso``); ``epochs`` (100);
