@@ -79,7 +79,8 @@ class FlightWriter:
         for name, values in properties.items():
             plain = {k: (json.dumps(v, default=str) if isinstance(v, (dict, list, tuple)) else v)
                      for k, v in values.items() if v is not None}
-            self.rec.send_property(name, self._rr.AnyValues(**plain))
+            if plain:
+                self.rec.send_property(name, self._rr.AnyValues(**plain))
 
     def _static_scene(self) -> None:
         rr = self._rr
