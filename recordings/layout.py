@@ -8,7 +8,8 @@ is one entity with one series per component; a flag is 0/1), strings are ``AnyVa
 and maps (parameter values) ``AnyValues`` component ``json`` (JSON text). Events are ``TextLog``.
 
 Timelines: ``stamp`` (every message: its ``stamp_s``, the machine's monotonic clock),
-``seq`` and ``t`` (messages of a sample: the sample number and its time ``t_s``).
+``seq`` and ``t`` (messages of a sample: the sample number and its time ``t_s``; events,
+health and parameter broadcasts are put on ``t`` at the newest sample time when they arrived).
 Numbers are also stored in full as scalars (``t_s``, ``stamp_s``), so a read back is bit-exact.
 """
 from __future__ import annotations
@@ -26,6 +27,12 @@ KINDS = ("number", "integer", "flag", "vector", "text", "json")
 TIMELINES = ("stamp", "seq", "t")
 POSE_ENTITY = "pose"  # neso/<v>/state/pose: the body transform for the 3D view
 REFERENCE_POINT = "point"  # neso/<v>/reference/point: the reference position in 3D
+ARENA_ENTITY = "scene/arena"  # static: the floor square the 3D view frames
+ARENA_HALF_SIZE_M = 1.5
+VECTOR_SERIES = ("x", "y", "z")
+# vector fields plotted with only their z series visible (the rest a click away in the legend)
+Z_ONLY = {("state", "pos_enu_m"), ("reference", "pos_enu_m"), ("truth", "pos_enu_m"), ("estimate", "f_hat_mps2"),
+          ("estimate", "f_n_mps2"), ("estimate", "delta_f_hat_mps2"), ("truth", "disturbance_acc_enu_mps2")}
 
 
 @dataclass(frozen=True)
@@ -85,18 +92,19 @@ def blueprint(vehicle: str):
     v = f"/{ROOT}/{vehicle}"
     series = [
         ("height (m): state, reference, truth", [f"{v}/state/pos_enu_m", f"{v}/reference/pos_enu_m", f"{v}/truth/pos_enu_m"]),
-        ("f̂, f_N, Δf̂ (m/s²)", [f"{v}/estimate/f_hat_mps2", f"{v}/estimate/f_n_mps2", f"{v}/estimate/delta_f_hat_mps2",
-                                f"{v}/truth/disturbance_acc_enu_mps2"]),
+        ("z: f̂, f_N, Δf̂, true disturbance (m/s²)", [f"{v}/estimate/f_hat_mps2", f"{v}/estimate/f_n_mps2",
+                                                   f"{v}/estimate/delta_f_hat_mps2", f"{v}/truth/disturbance_acc_enu_mps2"]),
         ("thrust (N)", [f"{v}/setpoint/thrust_n"]),
         ("attitude setpoint (rad)", [f"{v}/setpoint/roll_rad", f"{v}/setpoint/pitch_rad"]),
-        ("loop latency (ms)", [f"{v}/health/**"]),
+        ("in-service latency p99 (ms)", [f"{v}/health/{s}/latency_p99_ms" for s in ("estimator", "controller", "source")]),
     ]
     views = [rrb.TimeSeriesView(name=name, origin="/", contents=[f"+ {p}" for p in paths]) for name, paths in series]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial3DView(name="3D", origin="/", contents=[f"+ {v}/state/{POSE_ENTITY}/**",
-                                                                    f"+ {v}/reference/{REFERENCE_POINT}"]),
+                                                                    f"+ {v}/reference/{REFERENCE_POINT}",
+                                                                    f"+ /{ARENA_ENTITY}"]),
                 rrb.TextLogView(name="events", origin=f"{v}/event"),
                 row_shares=[3, 1],
             ),

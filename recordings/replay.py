@@ -68,7 +68,12 @@ def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, sto
     if not speed > 0:
         raise ValueError(f"speed must be positive, got {speed}")
     keys = Keys(vehicle)
-    pubs = {topic: session.declare_publisher(keys.topic(topic), express=True) for topic in {t for _, t, _ in schedule}}
+    import zenoh
+
+    # BLOCK: a replay is a recording's data, not a live loop's latest sample: never drop one
+    pubs = {topic: session.declare_publisher(keys.topic(topic), express=True,
+                                             congestion_control=zenoh.CongestionControl.BLOCK)
+            for topic in {t for _, t, _ in schedule}}
     deadline = time.monotonic() + wait_for_subscribers_s
     while time.monotonic() < deadline and not any(p.matching_status.matching for p in pubs.values()):
         time.sleep(0.02)

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from recordings.layout import (APPLICATION_ID, POSE_ENTITY, REFERENCE_POINT, SAMPLED_TOPICS, blueprint, entity,
-                               fields_of, message_type)
+from recordings.layout import (APPLICATION_ID, ARENA_ENTITY, ARENA_HALF_SIZE_M, POSE_ENTITY, REFERENCE_POINT,
+                               SAMPLED_TOPICS, VECTOR_SERIES, Z_ONLY, blueprint, entity, fields_of, message_type)
 from runtime.schema import EventMsg, Message, ROOT
 
 _TEXT_LEVEL = {"info": "INFO", "warning": "WARN", "error": "ERROR"}
@@ -64,6 +64,7 @@ class FlightWriter:
         self.vehicle, self.flight, self.segment = vehicle, flight, segment
         self.stats = WriterStats()
         self._buffers: dict[str, list[Message]] = {}
+        self._t_at_add: dict[str, list[float | None]] = {}
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=flight, send_properties=True)
         self.rec.save(str(self.path), default_blueprint=blueprint(vehicle))
         self.rec.send_recording_name(f"{flight} segment {segment}")
@@ -78,17 +79,29 @@ class FlightWriter:
         for name, values in properties.items():
             plain = {k: (json.dumps(v, default=str) if isinstance(v, (dict, list, tuple)) else v)
                      for k, v in values.items() if v is not None}
-            self.rec.send_property(name, self._rr.AnyValues(**plain))
+            if plain:
+                self.rec.send_property(name, self._rr.AnyValues(**plain))
 
     def _static_scene(self) -> None:
         rr = self._rr
         body = f"{ROOT}/{self.vehicle}/state/{POSE_ENTITY}/body"
         rr.log(body, rr.Boxes3D(half_sizes=[[0.12, 0.12, 0.03]], colors=[[80, 160, 255]]), static=True, recording=self.rec)
+        h = ARENA_HALF_SIZE_M
+        rr.log(ARENA_ENTITY, rr.LineStrips3D([[[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0], [-h, -h, 0]]],
+                                             colors=[[160, 160, 160]]), static=True, recording=self.rec)
+        for topic in SAMPLED_TOPICS:  # name the components of vector series; show z alone where z is what matters
+            for spec in fields_of(message_type(topic)):
+                if spec.kind == "vector" and spec.name != "z":
+                    visible = [False, False, True] if (topic, spec.name) in Z_ONLY else [True, True, True]
+                    rr.log(entity(self.vehicle, topic, spec.name),
+                           rr.SeriesLines(names=[f"{topic} {spec.name} {c}" for c in VECTOR_SERIES], visible_series=visible),
+                           static=True, recording=self.rec)
 
     # -- messages -----------------------------------------------------------------------
     def add(self, channel: str, msg: Message) -> None:
         """Buffer one message of ``channel`` (a topic, or ``health/<service>`` etc.)."""
         self._buffers.setdefault(channel, []).append(msg)
+        self._t_at_add.setdefault(channel, []).append(self.stats.last_t_s)
         s = self.stats
         s.messages += 1
         stamp = getattr(msg, "stamp_s", None)
@@ -104,9 +117,10 @@ class FlightWriter:
         """Write what was buffered and flush the file; the number of messages written."""
         started = time.perf_counter()
         buffers, self._buffers = self._buffers, {}
+        t_at_add, self._t_at_add = self._t_at_add, {}
         n = 0
         for channel, msgs in buffers.items():
-            self._send(channel, msgs)
+            self._send(channel, msgs, t_at_add[channel])
             n += len(msgs)
         self.rec.flush()
         self.stats.flushes += 1
@@ -122,7 +136,7 @@ class FlightWriter:
         self.closed = True
 
     # -- columns ------------------------------------------------------------------------
-    def _send(self, channel: str, msgs: list[Message]) -> None:
+    def _send(self, channel: str, msgs: list[Message], t_at_add: list[float | None]) -> None:
         rr = self._rr
         cls = message_type(channel)
         topic = channel.split("/")[0]
@@ -131,6 +145,8 @@ class FlightWriter:
         if topic in SAMPLED_TOPICS:
             indexes += [rr.TimeColumn("seq", sequence=np.array([m.seq for m in msgs], dtype=np.int64)),
                         rr.TimeColumn("t", duration=np.array([m.t_s for m in msgs], dtype=float))]
+        elif all(t is not None for t in t_at_add):  # events, health, params: at the flight time they arrived
+            indexes.append(rr.TimeColumn("t", duration=np.array(t_at_add, dtype=float)))
         for spec in fields_of(cls):
             values = [getattr(m, spec.name) for m in msgs]
             path = entity(self.vehicle, channel, spec.name)

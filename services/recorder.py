@@ -254,13 +254,20 @@ class Recorder:
                 now = time.monotonic()
                 if now >= next_flush:
                     next_flush = now + self.config.flush_period_s
-                    self._apply(self.tracker.tick(now), now)
+                    if self.queue.empty():  # with a backlog, newer samples are waiting: not silent
+                        self._apply(self.tracker.tick(now), now)
                     if self.writer is not None:
                         self.writer.flush()
                         self._touch()
                     if now - self._last_status >= self.config.status_period_s:
                         self._status()
         finally:
+            drain_until = time.monotonic() + 0.5  # what arrived before the stop, within the launcher's patience
+            while time.monotonic() < drain_until:
+                try:
+                    self._handle(self.queue.get_nowait())
+                except queue.Empty:
+                    break
             self._end("recorder stopped", keep_active=False)
 
     def stop(self) -> None:
@@ -394,7 +401,7 @@ class Recorder:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recordings-dir", default=DEFAULT_DIR, help=f"where flights are written (default {DEFAULT_DIR})")
     parser.add_argument("--flush-period", type=float, default=0.1, help="seconds between flushes to disk (≤ 0.2)")
-    parser.add_argument("--nice", type=int, default=0, help="scheduling niceness added to the recorder (0: none)")
+    parser.add_argument("--nice", type=int, default=5, help="scheduling niceness added to the recorder (0: none)")
     parser.add_argument("--manual", action="store_true", help="record only between `neso cmd recorder start` and stop")
 
 

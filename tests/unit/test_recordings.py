@@ -274,3 +274,35 @@ def test_bus_schedule_is_in_flight_order_and_paced_by_sample_time():
     assert [t for _, t, _ in sched[:2]] == ["state", "truth"]
     state = restamped(sched[0][2], 5.0)
     assert state.source == "replay" and state.stamp_s == 5.0 and state.pos_enu_m == sched[0][2].pos_enu_m
+
+
+def test_a_recorder_restarted_mid_flight_repairs_the_cut_file_and_writes_the_next_segment(tmp_path, monkeypatch):
+    from services.recorder import Recorder
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))  # the rerun CLI's analytics settings
+    statuses = []
+    config = RecorderConfig(directory=str(tmp_path), compact=True)
+    msgs = flight_messages(120)
+    first = Recorder(config, "uav1", publish_status=statuses.append, log=lambda *_: None)
+    for channel, msg in msgs[:300]:
+        first._handle(("msg", channel, msg.to_bytes(), 10.0 + msg.stamp_s))
+    first.writer.flush()  # flushed as the writer thread would, then "killed": never closed
+    flight = first.flight
+    assert statuses[-1].recording and statuses[-1].flight == flight and statuses[-1].segment == 0
+    second = Recorder(config, "uav1", publish_status=statuses.append, log=lambda *_: None)
+    second._repair_crashed(second.active.load())
+    for channel, msg in msgs[300:]:
+        second._handle(("msg", channel, msg.to_bytes(), 10.0 + msg.stamp_s))
+    assert (second.flight, second.segment) == (flight, 1)
+    second._handle(("msg", "state", b"\x93garbage", 20.0))
+    second.stop()
+    second._end("test over", keep_active=False)
+    second.join_compactions()
+    seg0, seg1 = read_recording(tmp_path / f"{flight}.seg0.rrd"), read_recording(tmp_path / f"{flight}.seg1.rrd")
+    assert seg1.properties["start"]["resumed"] is True and seg1.properties["summary"]["rejected"] == 1
+    states = seg0.channel("state").messages() + seg1.channel("state").messages()
+    assert states == [m for c, m in msgs if c == "state"], "the two segments hold the whole flight, once"
+    from recordings.reader import verify
+
+    assert verify(tmp_path / f"{flight}.seg0.rrd")[0], "the cut segment was repaired"
+    assert not (tmp_path / ".uav1.active.json").exists()
