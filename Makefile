@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench experiment clean
+.PHONY: setup demo demo-tdr test bench experiment clean
 
 setup: $(STAMP)
 
@@ -19,6 +19,9 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(VENV)/bin/neso experiment paper --trials 5 --plots out/plots --json out/paper.json --details out/paper-details.json
 	$(VENV)/bin/neso up --scenario nominal_landing --mission landing_test --duration 12
+
+demo-tdr: setup
+	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
 test: setup
 	$(PY) -m pytest

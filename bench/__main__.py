@@ -5,7 +5,10 @@ tick; network inference at batch 1; and the whole ``neso experiment paper`` pipe
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
+Then recording (:mod:`bench.recording`, ~80 s): loop latency at 50 Hz with the recorder off beside on,
+the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Pass ``--quick`` to skip the paper pipeline and shorten the bus section (10 s flights, 3 s floors).
+Last, the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
 """
 from __future__ import annotations
 
@@ -64,6 +67,15 @@ def main(argv: list[str]) -> int:
     print(flush=True)
     _print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
     print(FOOTNOTE)
+    from bench.recording import COLUMNS as RECORDING_COLUMNS, recording_rows
+
+    print(flush=True)
+    _print_table(RECORDING_COLUMNS, recording_rows(quick))
+
+    from bench.tdr import COLUMNS as TDR_COLUMNS, tdr_rows
+
+    print(flush=True)
+    _print_table(TDR_COLUMNS, tdr_rows(quick))
     return 0
 
 

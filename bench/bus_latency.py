@@ -176,8 +176,9 @@ class PipelineRun:
     source_misses_after: int | None
 
 
-def pipeline(rate_hz: float, flight_s: float) -> PipelineRun:
-    """Fly ``neso up`` at ``rate_hz`` for ``DISCARD_S + flight_s`` on a free hub port and probe it."""
+def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = ()) -> PipelineRun:
+    """Fly ``neso up`` at ``rate_hz`` for ``DISCARD_S + flight_s`` on a free hub port and probe it
+    (``extra_args``: more ``neso up`` options)."""
     hub = f"tcp/127.0.0.1:{free_port()}"
     keys = Keys("uav1")
     arrivals: dict[int, tuple[float, float]] = {}  # seq → (state_stamp_s, received_s)
@@ -199,7 +200,7 @@ def pipeline(rate_hz: float, flight_s: float) -> PipelineRun:
         probe.declare_subscriber(keys.health("source"), on_health)
         run_s = DISCARD_S + flight_s
         proc = neso("up", "--hub", hub, "--rate", f"{rate_hz:g}", "--duration", f"{run_s:g}",
-                    "--scenario", "nominal_landing", "--mission", "hover")
+                    "--scenario", "nominal_landing", "--mission", "hover", *extra_args)
         try:
             output = proc.communicate(timeout=run_s + 30.0)[0]
         except subprocess.TimeoutExpired:

@@ -14,6 +14,11 @@ SUBCOMMANDS = {
     "run": "cli.run",
     "params": "cli.params",
     "cmd": "cli.cmd",
+    "recordings": "cli.recordings",
+    "replay": "cli.replay",
+    "train": "cli.train",
+    "networks": "cli.networks",
+    "demo": "cli.demo",
 }
 
 

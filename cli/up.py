@@ -27,6 +27,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
+    p.add_argument("--no-record", dest="record", action="store_false", help="no recorder (default: record every flight)")
+    p.add_argument("--recordings-dir", default="out/recordings", help="where the recorder writes flights")
+    p.add_argument("--no-trainer", action="store_false", dest="trainer", help="do not start the trainer service")
+    p.add_argument("--registry", default="networks/registry", help="where the trainer stores networks")
 
 
 def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
@@ -47,6 +51,10 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
             specific += ["--network", args.network]
     elif role == "controller":
         specific = ["--mission", args.mission, "--rate", str(args.rate)]
+    elif role == "recorder":
+        specific = ["--recordings-dir", args.recordings_dir]
+    elif role == "trainer":
+        specific = ["--registry", args.registry, "--recordings-dir", args.recordings_dir]
     return python_module_argv("cli.main", "run", role, *common, *specific)
 
 

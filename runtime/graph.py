@@ -37,9 +37,14 @@ ROLES: tuple[Role, ...] = (
     Role("source", "services.source", "state source: simulator (real time or lockstep) or motion capture",
          publishes=_topics("state", "truth"), subscribes=_topics("setpoint")),
     Role("estimator", "services.estimator", "Neural-ESO: state + last setpoint → f̂ = f_N + Δf̂",
-         publishes=_topics("estimate"), subscribes=_topics("state", "setpoint")),
+         publishes=_topics("estimate", "network"), subscribes=_topics("state", "setpoint")),
     Role("controller", "services.controller", "mission + state + f̂ → attitude setpoint (local ESO if f̂ goes stale)",
          publishes=_topics("setpoint", "reference"), subscribes=_topics("state", "estimate")),
+    Role("recorder", "services.recorder", "every message of the vehicle into one Rerun .rrd per flight",
+         publishes=_topics("recording"), subscribes=_topics("state", "truth", "estimate", "setpoint", "reference"),
+         enabled_by="record"),
+    Role("trainer", "services.trainer", "trains, certifies and stores networks from recordings; offers them to the estimator",
+         publishes={}, subscribes=_topics("network"), enabled_by="trainer"),
 )
 
 GRAPH: dict[str, Role] = {role.name: role for role in ROLES}

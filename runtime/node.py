@@ -9,6 +9,7 @@ and counted; neither stops the service.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -50,6 +51,7 @@ class Node:
         self.stats = HealthStats(service, tuple(self.role.subscribes) + ("param", "cmd"))
         self.status_hook: Callable[[], str] | None = None
         self._command_handler: CommandHandler | None = None
+        self._unlocked_commands: frozenset[str] = frozenset()
         self._stop = threading.Event()
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
@@ -103,8 +105,12 @@ class Node:
             return None
 
     # -- parameters and commands -----------------------------------------------------------
-    def on_command(self, handler: CommandHandler) -> None:
+    def on_command(self, handler: CommandHandler, *, unlocked: tuple[str, ...] = ()) -> None:
+        """``handler(name, args) -> (ok, message)`` answers commands under the node lock, except
+        those named in ``unlocked`` (slow ones, e.g. reading a file, that take the lock themselves
+        only for the moment they touch the step object)."""
         self._command_handler = handler
+        self._unlocked_commands = frozenset(unlocked)
 
     def _on_param_query(self, query) -> None:
         try:
@@ -135,7 +141,7 @@ class Node:
         if self._command_handler is None:
             ok, message = False, f"{self.service} takes no commands"
         else:
-            with self.lock:
+            with contextlib.nullcontext() if request.name in self._unlocked_commands else self.lock:
                 result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
             ok, message = result if result is not None else (False, "command failed (see events)")
         self.log(f"command {request.name} {request.args}: " + ("ok" if ok else "refused") + (f": {message}" if message else ""))

@@ -11,6 +11,25 @@ Live parameters:
   the loaded network with its layers scaled down until its exact certificate meets the bound.
   A bound above the one the loaded network was trained to, with no network for it on disk, is
   refused: scaling can only flatten a network. The broadcast says which was done.
+
+Network hot swap (commands on ``neso/<v>/cmd/estimator``; each replies ok=False with the reason
+when refused, and a refusal leaves the active network flying):
+
+- ``offer {path}``: a candidate network file (normally from the registry) goes through the gate
+  (:func:`neso.hotswap.gate`: readable, finite, same layer shapes, certificate within its bound
+  in physical units, validation loss present, trained for this vehicle). A passed one runs in
+  **shadow**: it predicts beside the active network every sample, and its RMS error against
+  the flown f̂ (z axis, last 5 s) is in ``NetworkMsg.shadow_error_rms_mps2``; the active
+  network's own error over the same samples is ``candidate["active_error_rms_mps2"]``.
+- ``promote``: the candidate becomes the active network at the next sample; Δf̂ absorbs the
+  step so f̂ is continuous (:func:`neso.hotswap.absorb_step`). The active one becomes ``previous``.
+- ``rollback``: the previous network flies again, the same bumpless way.
+- ``reject``: drop the candidate.
+
+Every command takes an optional ``request`` id (any string): a repeat of the same id (a client
+retrying a query that timed out) gets the first answer and does nothing again.
+
+``NetworkMsg`` on ``neso/<v>/network``: once a second and on every change.
 """
 from __future__ import annotations
 
@@ -26,13 +45,16 @@ from neso.control import PositionController, ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.features import N_FEATURES
+from neso.hotswap import GateVerdict, ShadowError, gate
 from neso.netfile import NetworkFileError, load_network
 from neso.network import LipschitzMLP
 from runtime.params import Param
-from runtime.schema import EstimateMsg, SetpointMsg, StateMsg, state_measurement, vec
+from runtime.schema import EstimateMsg, NetworkMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 DEFAULT_NETWORK = "networks/base-L1.safetensors"
 _KEEP = 64
+SHADOW_WINDOW = 250  # samples: 5 s at 50 Hz
+MAX_NETWORK_FILE_BYTES = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -101,10 +123,19 @@ class NetworkChoice:
 class EstimatorCore:
     """The pure step object: :meth:`on_setpoint` and :meth:`on_state` return the estimates to publish."""
 
-    def __init__(self, config: EstimatorConfig, network: LipschitzMLP | None, choice: NetworkChoice) -> None:
+    def __init__(self, config: EstimatorConfig, network: LipschitzMLP | None, choice: NetworkChoice,
+                 vehicle: str = "uav1") -> None:
         self.config = config
         self.choice = choice
+        self.vehicle = vehicle
         self.network_id = network.metadata.get("id", "unnamed") if network is not None else "none"
+        self.active_info = _describe(network, "file", choice.source)
+        self.candidate: tuple[LipschitzMLP, dict] | None = None
+        self.previous: tuple[LipschitzMLP | None, dict] | None = None
+        self.shadow = ShadowError(SHADOW_WINDOW)
+        self.active_shadow = ShadowError(SHADOW_WINDOW)  # the active network's error, same samples
+        self.swapped = False  # a network from an offer is flying (the L_N parameter no longer picks networks)
+        self.changes = 0  # bumped on every network change, so the adapter publishes NetworkMsg at once
         self.estimator = NeuralESO(NeuralEsoConfig(eso=EsoConfig(omega_o_rps=config.omega_o_rps, dt_s=config.dt_s),
                                                    pathway=config.pathway), network)
         self._hover = PositionController(ControlConfig(dt_s=config.dt_s)).hover_output().applied
@@ -120,6 +151,9 @@ class EstimatorCore:
         bound = values["lipschitz_bound"]
         if self.estimator.network is None or _same_bound(bound, self.estimator.network.lipschitz_bound):
             return None
+        if self.swapped:
+            return (f"the active network {self.network_id} came from an offer: its L_N "
+                    f"{self.estimator.network.lipschitz_bound:g} is fixed (train another, or rollback)")
         return self.choice.refusal(bound)
 
     def apply(self, changed: dict) -> str:
@@ -127,12 +161,80 @@ class EstimatorCore:
         if "pathway" in changed:
             self.estimator.set_pathway(changed["pathway"])
             notes.append(f"pathway {changed['pathway']}")
-        if "lipschitz_bound" in changed and self.choice.loaded is not None:
+        if "lipschitz_bound" in changed and self.choice.loaded is not None and not self.swapped:
             net, note = self.choice.network_for(changed["lipschitz_bound"])
             self.estimator.set_network(net)
             self.network_id = f"{net.metadata.get('id', 'unnamed')}@L{changed['lipschitz_bound']:g}"
+            path = next((p for n, p in self.choice.trained.values() if n is net), None)
+            self.active_info = _describe(net, "scaled" if path is None else "file", path or self.choice.source,
+                                         self.network_id)
+            self.changes += 1
             notes.append(note)
         return "; ".join(notes)
+
+    # -- network hot swap ---------------------------------------------------------------
+    def check_offer(self, path: str) -> GateVerdict:
+        """Read and gate a candidate file (touches no estimator state but the active network)."""
+        try:
+            size = Path(path).stat().st_size
+            if size > MAX_NETWORK_FILE_BYTES:
+                return GateVerdict(None, f"network file {path} is {size} bytes (> {MAX_NETWORK_FILE_BYTES})")
+            data = Path(path).read_bytes()
+        except OSError as exc:
+            return GateVerdict(None, f"cannot read {path}: {exc.strerror or exc}")
+        return gate(data, active=self.estimator.network, vehicle=self.vehicle)
+
+    def accept(self, verdict: GateVerdict, path: str) -> str:
+        """Put a passed candidate in shadow (replacing any earlier candidate)."""
+        net = verdict.network
+        info = _describe(net, "registry", path)
+        info.update(state="shadow", **{k: v for k, v in verdict.findings.items() if k not in info})
+        self.candidate = (net, info)
+        self.shadow = ShadowError(SHADOW_WINDOW)
+        self.active_shadow = ShadowError(SHADOW_WINDOW)
+        self.changes += 1
+        return f"candidate {info['id']} in shadow ({verdict.findings.get('layers')}, val_loss {info['val_loss']})"
+
+    def promote(self) -> tuple[bool, str]:
+        if self.candidate is None:
+            return False, "no candidate to promote (offer one first)"
+        net, info = self.candidate
+        shadow = self.shadow.rms()
+        self.previous = (self.estimator.network, self.active_info)
+        self.estimator.set_network(net)
+        info = {k: v for k, v in info.items() if k != "state"}
+        self.active_info, self.network_id, self.candidate, self.swapped = info, info["id"], None, True
+        self.changes += 1
+        return True, f"promoted {info['id']} (shadow error {shadow:.4g} m/s²); previous {self.previous[1]['id']}"
+
+    def rollback(self) -> tuple[bool, str]:
+        if self.previous is None:
+            return False, "no previous network to roll back to"
+        net, info = self.previous
+        self.previous = (self.estimator.network, self.active_info)
+        self.estimator.set_network(net)
+        self.active_info, self.network_id = info, info["id"]
+        self.swapped = info.get("source") == "registry"
+        self.changes += 1
+        return True, f"rolled back to {info['id']}; previous {self.previous[1]['id']}"
+
+    def reject(self) -> tuple[bool, str]:
+        if self.candidate is None:
+            return False, "no candidate to reject"
+        cid = self.candidate[1]["id"]
+        self.candidate = None
+        self.changes += 1
+        return True, f"candidate {cid} dropped"
+
+    def network_msg(self) -> NetworkMsg:
+        candidate = {}
+        if self.candidate is not None:
+            candidate = dict(self.candidate[1], shadow_samples=self.shadow.samples,
+                             active_error_rms_mps2=self.active_shadow.rms())
+        return NetworkMsg(stamp_s=time.monotonic(), seq=max(self._last_seq, 0), active=self.active_info,
+                          candidate=candidate,
+                          previous=self.previous[1] if self.previous is not None else {},
+                          shadow_error_rms_mps2=self.shadow.rms() if self.candidate is not None else -1.0)
 
     # -- samples ------------------------------------------------------------------------
     def on_setpoint(self, sp: SetpointMsg, now_s: float) -> list[EstimateMsg]:
@@ -168,11 +270,25 @@ class EstimatorCore:
         self._last_seq = state.seq
         est = self.estimator.update(meas, applied)
         self.warm_ticks += 1
+        if self.candidate is not None:
+            self.shadow.add(self.candidate[0].predict(est.z)[0], est.f_hat[2])
+            active = self.estimator.network
+            self.active_shadow.add(active.predict(est.z)[0] if active is not None else 0.0, est.f_hat[2])
         self._last_output = EstimateMsg(
             seq=state.seq, stamp_s=time.monotonic(), t_s=state.t_s, f_hat_mps2=vec(est.f_hat), f_n_mps2=vec(est.f_n),
             delta_f_hat_mps2=vec(est.delta_f_hat), z=vec(est.z), pathway=est.pathway, network_id=self.network_id,
             warm_ticks=self.warm_ticks)
         return [self._last_output]
+
+
+def _describe(net: LipschitzMLP | None, source: str, path: str, net_id: str | None = None) -> dict:
+    """A network as NetworkMsg shows it: id, where it came from, bound and certificate in both units."""
+    if net is None:
+        return {"id": "none", "source": "none", "path": ""}
+    return {"id": net_id or net.metadata.get("id", "unnamed"), "source": source, "path": path,
+            "vehicle": net.metadata.get("vehicle", ""), "parent": net.metadata.get("parent", ""),
+            "lipschitz_norm": net.lipschitz_bound, "lipschitz_phys": net.lipschitz_bound_physical(),
+            "certified_phys": net.certified_lipschitz_physical(), "val_loss": net.metadata.get("val_loss", "")}
 
 
 def load_flown_network(path: str) -> tuple[LipschitzMLP | None, str]:
@@ -197,13 +313,15 @@ def config_from_args(args) -> EstimatorConfig:
 
 
 def run(args, bus) -> int:
-    from runtime.node import Node, run_node
+    from runtime.node import Node
+
+    from runtime.node import run_node
     from runtime.params import ParamSet
 
     config = config_from_args(args)
     network, source = load_flown_network(config.network)
     choice = NetworkChoice(network, source, config.network_dir)
-    core = EstimatorCore(config, network, choice)
+    core = EstimatorCore(config, network, choice, vehicle=args.vehicle)
     bound = network.lipschitz_bound if network is not None else 1.0
     params = ParamSet(estimator_params(config, bound), check=core.check)
     node = Node("estimator", vehicle=args.vehicle, bus=bus, config=config, params=params)
@@ -230,7 +348,63 @@ def run(args, bus) -> int:
     def on_setpoint(msg: SetpointMsg, received_s: float) -> None:
         publish(core.on_setpoint(msg, received_s), received_s)
 
+    put_network = node.publisher("network")
+    published_changes = [-1]
+
+    def publish_network() -> None:  # call under the node lock
+        put_network(core.network_msg())
+        published_changes[0] = core.changes
+
+    answered: dict[str, tuple[bool, str]] = {}
+
+    def on_command(name: str, cmd_args: dict) -> tuple[bool, str]:
+        # A client repeats a query it got no answer to in time: with a ``request`` id, a repeat gets
+        # the first answer instead of doing it twice (a second rollback would undo the first).
+        request = cmd_args.get("request")
+        if isinstance(request, str) and request in answered:
+            return answered[request]
+        result = swap_command(name, {k: v for k, v in cmd_args.items() if k != "request"})
+        if isinstance(request, str):
+            if len(answered) > 256:
+                answered.clear()
+            answered[request] = result
+        return result
+
+    def swap_command(name: str, cmd_args: dict) -> tuple[bool, str]:
+        if name == "offer":
+            path = cmd_args.get("path")
+            if not isinstance(path, str) or not path:
+                return False, "offer needs args {path: network file}"
+            verdict = core.check_offer(path)  # outside the lock: reads a file
+            with node.lock:
+                if not verdict.passed:
+                    node.event("warning", f"candidate {path} refused: {verdict.reason}; active {core.network_id} "
+                                          "keeps flying")
+                    return False, f"refused: {verdict.reason}"
+                message = core.accept(verdict, path)
+                publish_network()
+            node.event("info", message)
+            return True, message
+        actions = {"promote": core.promote, "rollback": core.rollback, "reject": core.reject}
+        if name not in actions:
+            return False, f"unknown command {name!r}; estimator takes offer, promote, rollback, reject"
+        with node.lock:
+            ok, message = actions[name]()
+            if ok:
+                publish_network()
+        node.event("info" if ok else "warning", message)
+        return ok, message
+
+    def network_loop(n: Node) -> None:
+        next_s = time.monotonic()
+        while not n.wait(0.05):
+            with n.lock:
+                if core.changes != published_changes[0] or time.monotonic() >= next_s:
+                    publish_network()
+                    next_s = time.monotonic() + 1.0
+
     node.subscribe("state", on_state)
     node.subscribe("setpoint", on_setpoint)
+    node.on_command(on_command, unlocked=("offer", "promote", "rollback", "reject"))
     node.status_hook = lambda: f"ok, pathway {core.estimator.pathway}, network {core.network_id}"
-    return run_node(node)
+    return run_node(node, network_loop)

@@ -1,0 +1,352 @@
+"""``neso demo tdr``: the whole Total Disturbance Retraining loop in simulation, on the bus, in real time.
+
+1. ``neso up`` the near-ground lemniscate scenario under Neural-ESO with the base (nominal-trained)
+   network, the recorder and the trainer on;
+2. fly the lemniscate mission (3 s ramp + 5 cycles of 6 s: 30 s of out-of-distribution data); the
+   recorder writes the flight;
+3. stop the recording, have the trainer train a TDR network from that ``.rrd`` starting from the
+   active network, certify and store it and offer it to the estimator (gate → shadow);
+4. promote it in flight (hovering at the lemniscate's end point), then fly the lemniscate again.
+
+Reported: the z RMSE of the cycles before and after the swap (truth − reference, the ramps left
+out), missed deadlines (states without a setpoint from the estimator's f̂), the commanded-force
+step at the swap beside the normal steps, the f̂ step at the swap, and the stage times from the
+end of the recording to the promoted network. The same function backs the process test
+(``tests/process/test_tdr_loop.py``) and the bench row (``bench/tdr.py``).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+RAMP_S = 3.0  # neso.trajectories.Lemniscate.ramp_s: the cycles start after it
+FORCE_STEP_LIMIT_N = 40.0 * 0.02  # the controller's force-increment limit per 50 Hz period
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("demo", help="demo missions (tdr: record, retrain, hot-swap in flight)")
+    sub = p.add_subparsers(dest="demo", required=True)
+    t = sub.add_parser("tdr", help="fly the lemniscate, retrain from the recording, promote in flight, fly again")
+    t.add_argument("--hub", default=None, help="hub endpoint (default: a free loopback port)")
+    t.add_argument("--workdir", default=None, help="recordings and registry go here (default: a temp dir)")
+    t.add_argument("--epochs", type=int, default=100)
+    t.add_argument("--json", default=None, help="write the report here as JSON")
+
+
+@dataclass
+class TdrReport:
+    """Figures of one TDR loop (see the module docstring); RMSE in cm, forces in N, times in s."""
+
+    rmse_before_cm: float = float("nan")
+    rmse_after_cm: float = float("nan")
+    improvement: float = float("nan")  # 1 − after/before
+    cycles_before_samples: int = 0
+    cycles_after_samples: int = 0
+    states: int = 0
+    missed_setpoints: int = 0  # states in the window with no setpoint, or one made without the estimator
+    missed_near_swap: int = 0  # of those, within ±25 samples (0.5 s) of the swap
+    states_without_setpoint: int = 0  # of those, no setpoint at all (the rest: the controller's local ESO flew)
+    swap_answered: bool = False  # the swap sample and the one after it got setpoints made with the estimator's f̂
+    missed_by_phase: dict = field(default_factory=dict)  # first lemniscate / training and swap / second lemniscate
+    swap_seq: int = -1
+    force_step_at_swap_n: float = float("nan")  # largest commanded-force component step, ±5 samples of the swap
+    force_step_p50_n: float = float("nan")
+    force_step_p99_n: float = float("nan")
+    f_hat_step_at_swap_mps2: float = float("nan")
+    f_hat_step_p99_mps2: float = float("nan")
+    shadow_error_rms_mps2: float = float("nan")  # candidate's f_N − f̂ (z) in shadow, just before the promote
+    active_error_rms_mps2: float = float("nan")  # the active network's, same samples
+    recording: str = ""
+    network_id: str = ""
+    trainer_summary: str = ""
+    stage_s: dict = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        st = ", ".join(f"{k} {v:.2f}" for k, v in self.stage_s.items())
+        return [
+            f"z RMSE, lemniscate cycles before the swap (base network): {self.rmse_before_cm:.2f} cm "
+            f"({self.cycles_before_samples} samples)",
+            f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm "
+            f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
+            f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.states_without_setpoint} without "
+            f"any setpoint, the rest flown on the controller's local ESO; {self.missed_near_swap} within 0.5 s of the "
+            f"swap, swap sample answered: {self.swap_answered}; by phase {self.missed_by_phase})",
+            f"commanded force step at the swap {self.force_step_at_swap_n:.3f} N (normal p50 {self.force_step_p50_n:.3f}, "
+            f"p99 {self.force_step_p99_n:.3f}, limit {FORCE_STEP_LIMIT_N:.3f}); f̂ step at the swap "
+            f"{self.f_hat_step_at_swap_mps2:.4f} m/s² (normal p99 {self.f_hat_step_p99_mps2:.4f})",
+            f"in shadow before the promote: candidate's RMS error against f̂ {self.shadow_error_rms_mps2:.3f} m/s², "
+            f"active network's {self.active_error_rms_mps2:.3f} m/s²",
+            f"recording -> promoted network, s: {st}",
+        ]
+
+
+def _force(sp) -> np.ndarray:
+    from neso.rotations import world_from_body_zyx
+
+    return sp.thrust_n * world_from_body_zyx(sp.roll_rad, sp.pitch_rad, sp.yaw_rad)[:, 2]
+
+
+def lemniscate_runs(references) -> list[tuple[int, int]]:
+    """(first seq, last seq) of each run of the ``lemniscate`` segment, in order: a run ends at
+    the first reference of another segment (samples whose reference was not seen do not end it)."""
+    runs, start, last = [], None, None
+    for m in sorted(references, key=lambda m: m.seq):
+        if m.segment == "lemniscate":
+            start = m.seq if start is None else start
+            last = m.seq
+        elif start is not None:
+            runs.append((start, last))
+            start = None
+    if start is not None:
+        runs.append((start, last))
+    return runs
+
+
+def z_rmse_cm(references, truths, run: tuple[int, int]) -> tuple[float, int]:
+    """z RMSE (cm) of truth against reference over one lemniscate run, its ramp left out."""
+    refs = {m.seq: m for m in references if run[0] <= m.seq <= run[1]}
+    truth = {m.seq: m.pos_enu_m[2] for m in truths if run[0] <= m.seq <= run[1]}
+    t0 = refs[run[0]].t_s
+    err = [truth[k] - refs[k].pos_enu_m[2] for k in sorted(set(refs) & set(truth)) if refs[k].t_s >= t0 + RAMP_S]
+    return (float(np.sqrt(np.mean(np.square(err)))) * 100 if err else float("nan")), len(err)
+
+
+def analyse(probe, first_run, second_run, swap_seq: int, report: TdrReport) -> TdrReport:
+    """Fill the flight figures of ``report`` from what ``probe`` (a Collector) saw."""
+    refs, truths = probe.get("reference"), probe.get("truth")
+    report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
+    report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
+    report.improvement = 1.0 - report.rmse_after_cm / report.rmse_before_cm
+    lo, hi = first_run[0], second_run[1]
+    states = {m.seq for m in probe.get("state") if lo <= m.seq <= hi}
+    good = {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi and m.estimate_source == "estimator"}
+    missed = states - good
+    report.states_without_setpoint = len(states - {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi})
+    report.swap_answered = swap_seq in good and swap_seq + 1 in good
+    report.states, report.missed_setpoints = len(states), len(missed)
+    report.missed_near_swap = sum(1 for k in missed if abs(k - swap_seq) <= 25)
+    report.missed_by_phase = {
+        "first lemniscate": sum(1 for k in missed if k <= first_run[1]),
+        "between (training, shadow, swap)": sum(1 for k in missed if first_run[1] < k < second_run[0]),
+        "second lemniscate": sum(1 for k in missed if k >= second_run[0])}
+    sps = {m.seq: m for m in probe.get("setpoint") if lo <= m.seq <= hi}
+    steps = {k: float(np.max(np.abs(_force(sps[k]) - _force(sps[k - 1])))) for k in sps if k - 1 in sps}
+    report.swap_seq = swap_seq
+    near = [v for k, v in steps.items() if abs(k - swap_seq) <= 5]
+    normal = [v for k, v in steps.items() if abs(k - swap_seq) > 5]
+    report.force_step_at_swap_n = max(near) if near else float("nan")
+    report.force_step_p50_n = float(np.percentile(normal, 50))
+    report.force_step_p99_n = float(np.percentile(normal, 99))
+    est = {m.seq: m.f_hat_mps2[2] for m in probe.get("estimate") if lo <= m.seq <= hi}
+    fsteps = {k: abs(est[k] - est[k - 1]) for k in est if k - 1 in est}
+    report.f_hat_step_at_swap_mps2 = fsteps.get(swap_seq, float("nan"))
+    report.f_hat_step_p99_mps2 = float(np.percentile([v for k, v in fsteps.items() if abs(k - swap_seq) > 5], 99))
+    return report
+
+
+class _Probe:
+    """Every valid message of some topics of one vehicle, in arrival order."""
+
+    def __init__(self, session, keys, topics) -> None:
+        from runtime.schema import TOPICS, SchemaError
+
+        self._lock = threading.Lock()
+        self.messages: dict[str, list] = {t: [] for t in topics}
+
+        def handler(topic):
+            cls = TOPICS[topic]
+
+            def on_sample(sample):
+                try:
+                    msg = cls.from_bytes(sample.payload.to_bytes())
+                except SchemaError:
+                    return
+                with self._lock:
+                    self.messages[topic].append(msg)
+            return on_sample
+
+        self._subs = [session.declare_subscriber(keys.topic(t), handler(t)) for t in topics]
+
+    def get(self, topic: str) -> list:
+        with self._lock:
+            return list(self.messages[topic])
+
+    def wait_for(self, topic: str, predicate, timeout_s: float):
+        """The newest message of ``topic`` satisfying ``predicate`` (waiting up to ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for msg in reversed(self.get(topic)):
+                if predicate(msg):
+                    return msg
+            time.sleep(0.02)
+        raise TimeoutError(f"no {topic} message satisfying the condition within {timeout_s:g} s")
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+
+
+class _Events:
+    """Every event of some services of a vehicle, as text."""
+
+    def __init__(self, session, keys, services) -> None:
+        from runtime.schema import EventMsg
+
+        self.texts: list[str] = []
+        self._subs = [session.declare_subscriber(keys.event(s), lambda smp: self.texts.append(
+            EventMsg.from_bytes(smp.payload.to_bytes()).text)) for s in services]
+
+    def wait(self, predicate, timeout_s: float) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for text in list(self.texts):
+                if predicate(text):
+                    return text
+            time.sleep(0.05)
+        raise TimeoutError("no such event")
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+
+
+def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
+                 fly_after: bool = True) -> TdrReport:
+    """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
+    ``fly_after`` False: stop once the new network flies (the bench: stage times only)."""
+    from runtime.bus import BusConfig, open_session
+    from runtime.client import command
+    from runtime.schema import Keys
+
+    keys = Keys("uav1")
+    rec_dir, registry = os.path.join(workdir, "recordings"), os.path.join(workdir, "registry")
+    argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
+            "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry]
+    up_log = open(os.path.join(workdir, "neso-up.log"), "w")
+    up = subprocess.Popen(argv, stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True,
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    report = TdrReport()
+    session = open_session(BusConfig(connect=(hub,)))
+    try:
+        probe = _Probe(session, keys, ("state", "truth", "estimate", "setpoint", "reference", "network",
+                                       "recording"))
+        events = _Events(session, keys, ("trainer", "estimator", "recorder"))
+        if on_up is not None:
+            on_up(up)
+
+        def cmd(service, name, timeout_s=5.0, **args):
+            return command(session, keys, service, name, dict(args, request=uuid.uuid4().hex), timeout_s=timeout_s)
+
+        probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
+        log("flying the lemniscate under Neural-ESO with the base network, recording")
+        first_run = fly_lemniscate(probe, cmd)
+        path = probe.wait_for("recording", lambda m: m.recording and m.path, 5.0).path
+        t_stop = time.monotonic()
+        reply = cmd("recorder", "stop")
+        assert reply.ok, reply.message
+        probe.wait_for("recording", lambda m: not m.recording and m.stamp_s > t_stop, 10.0)
+        report.recording = path
+        log(f"recorded {path}; training TDR from it")
+        t_train = time.monotonic()
+        reply = cmd("trainer", "train", recordings=[path], label="tdr", epochs=epochs)
+        assert reply.ok, reply.message
+        job = reply.message.split()[1]
+        done = events.wait(lambda t: t.startswith(f"job {job} done") or t.startswith(f"job {job} failed"), 300.0)
+        report.trainer_summary = done
+        if not done.startswith(f"job {job} done") or "offer accepted" not in done:
+            raise RuntimeError(f"training did not give an accepted candidate: {done}")
+        t_offered = time.monotonic()
+        cand = probe.wait_for("network", lambda m: m.candidate.get("state") == "shadow", 5.0).candidate
+        report.network_id = cand["id"]
+        log(f"candidate {cand['id']} in shadow; promoting")
+        time.sleep(2.0)  # shadow: predicting beside the active network
+        shadow = probe.get("network")[-1]
+        report.shadow_error_rms_mps2 = shadow.shadow_error_rms_mps2
+        report.active_error_rms_mps2 = shadow.candidate.get("active_error_rms_mps2", float("nan"))
+        before = probe.get("estimate")[-1].seq
+        t_promote = time.monotonic()
+        reply = cmd("estimator", "promote")
+        assert reply.ok, reply.message
+        probe.wait_for("estimate", lambda m: m.network_id == cand["id"] and m.seq > before, 5.0)
+        t_promoted = time.monotonic()
+        swap_seq = min(m.seq for m in probe.get("estimate") if m.network_id == cand["id"])
+        report.stage_s = {"stop recording": t_train - t_stop, "train job (dataset, train, certify, store, offer)":
+                          t_offered - t_train, "promote": t_promoted - t_promote,
+                          "recording stopped -> promoted (without the 2 s shadow)":
+                          (t_offered - t_stop) + (t_promoted - t_promote)}
+        report.stage_s.update({f"trainer {k}": float(v) for k, v in _stage_times(done).items()})
+        if not fly_after:
+            events.close()
+            probe.close()
+            return report
+        log("promoted; flying the lemniscate again")
+        cmd("recorder", "start")
+        second_run = fly_lemniscate(probe, cmd)
+        runs = [first_run, second_run]
+        assert all(m.network_id == cand["id"] for m in probe.get("estimate") if runs[1][0] <= m.seq <= runs[1][1])
+        analyse(probe, runs[0], runs[1], swap_seq, report)
+        events.close()
+        probe.close()
+        return report
+    finally:
+        session.close()
+        if up.poll() is None:
+            up.send_signal(signal.SIGINT)
+        try:
+            up.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait()
+        up_log.close()
+
+
+def fly_lemniscate(probe, cmd) -> tuple[int, int]:
+    """Command the lemniscate mission and wait until it is over: its (first seq, last seq)."""
+    after = probe.get("reference")[-1].seq
+    reply = cmd("controller", "lemniscate")
+    assert reply.ok, reply.message
+    probe.wait_for("reference", lambda m: m.segment == "lemniscate" and m.seq > after, 30.0)
+    start = min(m.seq for m in probe.get("reference") if m.segment == "lemniscate" and m.seq > after)
+    probe.wait_for("reference", lambda m: m.segment != "lemniscate" and m.seq > start, 90.0)
+    runs = [r for r in lemniscate_runs(probe.get("reference")) if r[0] >= start]
+    assert len(runs) == 1, f"one lemniscate run expected after sample {start}: {runs}"
+    return runs[0]
+
+
+def _stage_times(summary: str) -> dict:
+    """The trainer's ``stage x.xx s`` figures out of its job summary."""
+    import re
+
+    return {m.group(1): float(m.group(2)) for m in re.finditer(r"(dataset|train|certify|store|offer) ([0-9.]+) s",
+                                                               summary)}
+
+
+def free_loopback_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run(args) -> int:
+    hub = args.hub or f"tcp/127.0.0.1:{free_loopback_port()}"
+    workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
+    os.makedirs(workdir, exist_ok=True)
+    report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs)
+    print("\n".join(report.lines()))
+    print(f"recordings, registry and the neso up log are in {workdir}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(asdict(report), f, indent=1)
+    return 0

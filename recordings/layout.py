@@ -1,0 +1,116 @@
+"""How bus messages map onto a Rerun recording, and the blueprint the stock viewer opens.
+
+Entity paths mirror the key expressions: field ``pos_enu_m`` of ``neso/uav1/state`` is the
+entity ``neso/uav1/state/pos_enu_m``; the per-service keys keep their service chunk
+(``neso/uav1/health/estimator/rate_hz``). A field's kind follows its declared type in
+``runtime.schema``: numbers, integers, flags and vectors are ``Scalars`` (plottable; a vector
+is one entity with one series per component; a flag is 0/1), strings are ``AnyValues`` component ``text``
+and maps (parameter values) ``AnyValues`` component ``json`` (JSON text). Events are ``TextLog``.
+
+Timelines: ``stamp`` (every message: its ``stamp_s``, the machine's monotonic clock),
+``seq`` and ``t`` (messages of a sample: the sample number and its time ``t_s``; events,
+health and parameter broadcasts are put on ``t`` at the newest sample time when they arrived).
+Numbers are also stored in full as scalars (``t_s``, ``stamp_s``), so a read back is bit-exact.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from runtime.schema import ROOT, TOPICS, EventMsg, HealthMsg, Message, ParamStateMsg
+
+APPLICATION_ID = "neso"
+SAMPLED_TOPICS = ("state", "truth", "estimate", "setpoint", "reference")  # messages with seq and t_s
+# per-service kinds recorded (key neso/<v>/<kind>/<service>) and their message type
+SERVICE_KINDS: dict[str, type[Message]] = {"event": EventMsg, "health": HealthMsg, "params": ParamStateMsg}
+KINDS = ("number", "integer", "flag", "vector", "text", "json")
+TIMELINES = ("stamp", "seq", "t")
+POSE_ENTITY = "pose"  # neso/<v>/state/pose: the body transform for the 3D view
+REFERENCE_POINT = "point"  # neso/<v>/reference/point: the reference position in 3D
+ARENA_ENTITY = "scene/arena"  # static: the floor square the 3D view frames
+ARENA_HALF_SIZE_M = 1.5
+VECTOR_SERIES = ("x", "y", "z")
+# vector fields plotted with only their z series visible (the rest a click away in the legend)
+Z_ONLY = {("state", "pos_enu_m"), ("reference", "pos_enu_m"), ("truth", "pos_enu_m"), ("estimate", "f_hat_mps2"),
+          ("estimate", "f_n_mps2"), ("estimate", "delta_f_hat_mps2"), ("truth", "disturbance_acc_enu_mps2")}
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    name: str
+    kind: str  # one of KINDS
+
+
+def _kind(annotation: str) -> str:
+    return {"float": "number", "int": "integer", "bool": "flag", "tuple": "vector", "str": "text",
+            "dict": "json"}[str(annotation)]
+
+
+def fields_of(cls: type[Message]) -> tuple[FieldSpec, ...]:
+    """Every recorded field of a message type, with its kind (from the schema's annotations)."""
+    return tuple(FieldSpec(f.name, _kind(f.type)) for f in dataclasses.fields(cls))
+
+
+def message_type(channel: str) -> type[Message]:
+    """The message type of a channel: a topic (``state``) or a per-service kind (``health/estimator``)."""
+    head = channel.split("/")[0]
+    if "/" in channel:
+        return SERVICE_KINDS[head]
+    return TOPICS[head]
+
+
+def channel_of(key: str) -> tuple[str, str] | None:
+    """(vehicle, channel) of a key expression: ``neso/uav1/state`` → (``uav1``, ``state``),
+    ``neso/uav1/health/estimator`` → (``uav1``, ``health/estimator``); None if not recorded."""
+    parts = str(key).split("/")
+    if len(parts) == 3 and parts[0] == ROOT and parts[2] in TOPICS:
+        return parts[1], parts[2]
+    if len(parts) == 4 and parts[0] == ROOT and parts[2] in SERVICE_KINDS:
+        return parts[1], f"{parts[2]}/{parts[3]}"
+    return None
+
+
+def entity(vehicle: str, channel: str, field: str) -> str:
+    """The entity path of one field of one channel."""
+    return f"{ROOT}/{vehicle}/{channel}/{field}"
+
+
+def parse_entity(path: str) -> tuple[str, str, str] | None:
+    """(vehicle, channel, field) of an entity path written by :func:`entity`, else None."""
+    parts = str(path).strip("/").split("/")
+    if len(parts) == 4 and parts[0] == ROOT and parts[2] in TOPICS:
+        return parts[1], parts[2], parts[3]
+    if len(parts) == 5 and parts[0] == ROOT and parts[2] in SERVICE_KINDS:
+        return parts[1], f"{parts[2]}/{parts[3]}", parts[4]
+    return None
+
+
+def blueprint(vehicle: str):
+    """The viewer layout: the 3D scene beside the time series an operator looks at."""
+    import rerun.blueprint as rrb
+
+    v = f"/{ROOT}/{vehicle}"
+    series = [
+        ("height (m): state, reference, truth", [f"{v}/state/pos_enu_m", f"{v}/reference/pos_enu_m", f"{v}/truth/pos_enu_m"]),
+        ("z: f̂, f_N, Δf̂, true disturbance (m/s²)", [f"{v}/estimate/f_hat_mps2", f"{v}/estimate/f_n_mps2",
+                                                   f"{v}/estimate/delta_f_hat_mps2", f"{v}/truth/disturbance_acc_enu_mps2"]),
+        ("thrust (N)", [f"{v}/setpoint/thrust_n"]),
+        ("attitude setpoint (rad)", [f"{v}/setpoint/roll_rad", f"{v}/setpoint/pitch_rad"]),
+        ("in-service latency p99 (ms)", [f"{v}/health/{s}/latency_p99_ms" for s in ("estimator", "controller", "source")]),
+    ]
+    views = [rrb.TimeSeriesView(name=name, origin="/", contents=[f"+ {p}" for p in paths]) for name, paths in series]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial3DView(name="3D", origin="/", contents=[f"+ {v}/state/{POSE_ENTITY}/**",
+                                                                    f"+ {v}/reference/{REFERENCE_POINT}",
+                                                                    f"+ /{ARENA_ENTITY}"]),
+                rrb.TextLogView(name="events", origin=f"{v}/event"),
+                row_shares=[3, 1],
+            ),
+            rrb.Vertical(*views),
+            column_shares=[2, 3],
+        ),
+        rrb.TimePanel(timeline="t"),
+        collapse_panels=True,
+    )

@@ -1,0 +1,75 @@
+"""`neso replay` as real processes: the example flight back on a real bus at its pace, and the
+web viewer served on loopback at the ports asked for."""
+from __future__ import annotations
+
+import os
+import signal
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+from recordings.reader import read_recording
+from tests.busutil import Collector, free_port, hub, neso, peer, session, stop
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
+
+
+def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    recorded = read_recording(EXAMPLE)
+    with hub(endpoint), session(peer(endpoint)) as s:
+        probe = Collector(s, vehicle="replay1")
+        original = Collector(s, vehicle="uav1")
+        time.sleep(0.3)
+        proc = neso("replay", str(EXAMPLE), "--to-bus", "--speed", "4", "--as", "replay1", "--connect", endpoint)
+        try:
+            first = probe.wait_for("state", lambda m: True, 20.0)
+            started = time.monotonic()
+            proc.wait(30)
+            elapsed = time.monotonic() - started
+            out = proc.stdout.read()
+        finally:
+            stop(proc)
+        time.sleep(0.2)
+        assert proc.returncode == 0, out
+        assert "published 3000 of 3000" in out, out
+        states = probe.get("state")
+        assert first.source == "replay" and all(m.source == "replay" for m in states)
+        assert original.get("state") == [], "nothing under the recorded name"
+        # 12 s of flight at ×4: about 3 s (generous margin for a loaded machine)
+        assert 2.5 < elapsed < 6.0, f"replay took {elapsed:.2f} s"
+        rec_states = recorded.channel("state").messages()
+        assert len(states) == 600
+        np.testing.assert_array_equal([m.pos_enu_m for m in states], [m.pos_enu_m for m in rec_states])
+        assert [m.seq for m in probe.get("estimate")] == list(range(600))
+        assert np.all(np.diff([m.stamp_s for m in states]) > 0), "stamped with the replay's clock"
+
+
+def test_web_viewer_is_served_on_loopback_at_the_given_ports_and_stops_with_ctrl_c():
+    web, grpc = free_port(), free_port()
+    proc = neso("replay", str(EXAMPLE), "--web", "--web-port", str(web), "--grpc-port", str(grpc))
+    try:
+        deadline = time.monotonic() + 30
+        page = None
+        while time.monotonic() < deadline and page is None:
+            try:
+                page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=2).read()
+            except OSError:
+                time.sleep(0.2)
+        assert page is not None and b"<html" in page.lower()
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(10)
+    time.sleep(0.5)
+    left = [p for p in os.listdir("/proc") if p.isdigit() and _cmdline_has(p, f"--web-viewer-port {web}")]
+    assert left == [], "the viewer stopped with it"
+
+
+def _cmdline_has(pid: str, text: str) -> bool:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return text in f.read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return False

@@ -1,0 +1,308 @@
+"""Recordings on synthetic messages: layout, writer → reader round trip, a file cut short,
+training-set extraction rules, flight boundaries."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recordings.dataset import load_training_set, select
+from recordings.layout import channel_of, entity, fields_of, message_type, parse_entity
+from recordings.reader import RecordingError, read_recording
+from recordings.writer import FlightWriter, segment_path
+from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, ParamStateMsg, ReferenceMsg, SetpointMsg, StateMsg,
+                            TOPICS, TruthMsg)
+from services.recorder import FlightTracker, RecorderConfig
+from tests.unit.test_schema import EXAMPLES
+
+DT = 0.02
+
+
+def flight_messages(n: int, *, pathway="eso", on_ground_until=0, thrust_zero_from=None, seq0=0, warm0=0):
+    """A synthetic flight: n samples of every sampled topic plus some per-service messages."""
+    rng = np.random.default_rng(n)
+    out = []
+    for k in range(n):
+        seq, t, stamp = seq0 + k, (seq0 + k) * DT, 100.0 + (seq0 + k) * DT
+        pos, vel = tuple(rng.normal(size=3)), tuple(rng.normal(size=3))
+        out.append(("state", StateMsg(seq=seq, stamp_s=stamp, t_s=t, pos_enu_m=pos, vel_enu_mps=vel, roll_rad=0.01 * k % 1,
+                                      pitch_rad=-0.02, yaw_rad=0.3, source="sim")))
+        out.append(("truth", TruthMsg(seq=seq, stamp_s=stamp, t_s=t, pos_enu_m=pos, vel_enu_mps=vel,
+                                      disturbance_acc_enu_mps2=tuple(rng.normal(size=3)), on_ground=k < on_ground_until,
+                                      crashed=False, scenario="nominal_landing")))
+        z = tuple(rng.normal(size=5))
+        f_n, delta = tuple(rng.normal(size=3)), tuple(rng.normal(size=3))
+        out.append(("estimate", EstimateMsg(seq=seq, stamp_s=stamp + 1e-4, t_s=t, f_hat_mps2=tuple(np.add(f_n, delta)),
+                                            f_n_mps2=f_n, delta_f_hat_mps2=delta, z=z, pathway=pathway,
+                                            network_id="base-L1.0", warm_ticks=warm0 + k + 1)))
+        thrust = 0.0 if thrust_zero_from is not None and k >= thrust_zero_from else 6.5
+        out.append(("setpoint", SetpointMsg(seq=seq, stamp_s=stamp + 2e-4, state_stamp_s=stamp, t_s=t, roll_rad=0.0,
+                                            pitch_rad=0.01, yaw_rad=0.3, thrust_norm=thrust / 20, thrust_n=thrust,
+                                            acc_cmd_enu_mps2=(0.0, 0.1, -0.2), estimate_source="estimator")))
+        out.append(("reference", ReferenceMsg(seq=seq, stamp_s=stamp + 2e-4, t_s=t, pos_enu_m=pos, vel_enu_mps=vel,
+                                              acc_enu_mps2=(0.0, 0.0, 0.0), yaw_rad=0.3, segment="hover")))
+        if k % 50 == 0:
+            out.append(("health/estimator", HealthMsg(stamp_s=stamp, service="estimator", pid=7, uptime_s=t, ticks=k,
+                                                      rate_hz=50.0, latency_p50_ms=0.2, latency_p99_ms=0.5,
+                                                      rejected={"state": 0.0}, staleness_s={"state": 0.01}, status="ok")))
+    out.insert(3, ("params/estimator", ParamStateMsg(stamp_s=100.0, service="estimator", seq=0,
+                                                     values={"pathway": pathway, "lipschitz_bound": 1.0}, note="start")))
+    out.insert(4, ("event/controller", EventMsg(stamp_s=100.0, service="controller", level="info", text="took off")))
+    return out
+
+
+def write(path, messages, *, flush_every=100, close=True, vehicle="uav1"):
+    w = FlightWriter(path, vehicle=vehicle, flight="uav1-test", segment=0, properties={"params": {"estimator": {"pathway": "eso"}}})
+    for i, (channel, msg) in enumerate(messages):
+        w.add(channel, msg)
+        if i % flush_every == flush_every - 1:
+            w.flush()
+    if close:
+        w.close()
+    else:
+        w.flush()
+    return w
+
+
+def test_entity_paths_mirror_the_key_expressions_and_every_field_has_a_kind():
+    assert channel_of("neso/uav1/state") == ("uav1", "state")
+    assert channel_of("neso/uav1/health/estimator") == ("uav1", "health/estimator")
+    assert channel_of("neso/uav1/param/estimator") is None and channel_of("other/uav1/state") is None
+    assert entity("uav1", "state", "pos_enu_m") == "neso/uav1/state/pos_enu_m"
+    assert parse_entity("/neso/uav1/health/estimator/rate_hz") == ("uav1", "health/estimator", "rate_hz")
+    for cls in TOPICS.values():
+        assert [f.name for f in fields_of(cls)] == [f.name for f in dataclasses.fields(cls)]
+    assert message_type("params/estimator") is ParamStateMsg
+
+
+def test_every_message_type_reads_back_exactly(tmp_path):
+    path = tmp_path / "all.rrd"
+    channels = {"param_state": "params/estimator", "event": "event/estimator", "health": "health/estimator"}
+    written = [(channels.get(m.TYPE, m.TYPE), m) for m in EXAMPLES if channels.get(m.TYPE, m.TYPE) in TOPICS
+               or m.TYPE in channels]
+    write(path, written * 3)
+    rec = read_recording(path)
+    assert rec.vehicle == "uav1" and rec.properties["flight"]["flight"] == "uav1-test"
+    assert rec.properties["params"]["estimator"] == {"pathway": "eso"}
+    for channel, msg in written:
+        assert rec.channel(channel).messages() == [msg] * 3, channel
+
+
+def test_a_flight_reads_back_bit_exact_in_publication_order(tmp_path):
+    msgs = flight_messages(300)
+    write(tmp_path / "f.rrd", msgs, flush_every=37)
+    rec = read_recording(tmp_path / "f.rrd")
+    for channel in ("state", "truth", "estimate", "setpoint", "reference", "health/estimator", "params/estimator"):
+        assert rec.channel(channel).messages() == [m for c, m in msgs if c == channel], channel
+    est = rec.channel("estimate")
+    assert est.columns["z"].shape == (300, 5) and est.columns["z"].dtype == np.float64
+
+
+def test_a_file_cut_short_is_read_up_to_its_last_flush(tmp_path):
+    msgs = flight_messages(200)
+    path = tmp_path / "cut.rrd"
+    write(path, msgs, flush_every=100, close=False)  # no footer, as after kill -9
+    full = path.read_bytes()
+    path.write_bytes(full[: int(len(full) * 0.8)])  # and the tail of the last write torn off
+    rec = read_recording(path)
+    states = rec.channel("state").messages()
+    assert 0 < len(states) < 200
+    assert states == [m for c, m in msgs if c == "state"][: len(states)], "a prefix, exactly"
+
+
+def test_not_a_recording_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.rrd"
+    bad.write_bytes(b"not an rrd at all" * 10)
+    with pytest.raises(RecordingError, match="bad.rrd"):
+        read_recording(bad)
+    with pytest.raises(RecordingError, match="no such file"):
+        read_recording(tmp_path / "missing.rrd")
+    (tmp_path / "empty.rrd").write_bytes(b"")
+    with pytest.raises(RecordingError, match="empty"):
+        read_recording(tmp_path / "empty.rrd")
+
+
+def test_eso_training_set_has_the_network_input_and_x3_label_and_skips_cold_ground_and_other_pathways(tmp_path):
+    msgs = flight_messages(200, on_ground_until=40, thrust_zero_from=180)
+    write(tmp_path / "eso.rrd", msgs)
+    ts = load_training_set(tmp_path / "eso.rrd", "eso", skip_s=0.5)
+    est = [m for c, m in msgs if c == "estimate"]
+    # warm after 25 samples (0.5 s at 50 Hz), airborne from 40, thrust until 179
+    expected = [m for k, m in enumerate(est) if m.warm_ticks >= 25 and 40 <= k < 180]
+    assert len(ts) == len(expected) == 140
+    np.testing.assert_array_equal(ts.z, np.array([m.z for m in expected]))
+    np.testing.assert_array_equal(ts.y_mps2, np.array([m.f_hat_mps2[2] for m in expected]))
+    assert ts.label == "eso" and ts.vehicle == "uav1" and ts.recordings == (str(tmp_path / "eso.rrd"),)
+    with pytest.raises(RecordingError, match="no usable 'tdr' samples.*pathway not neural_eso"):
+        load_training_set(tmp_path / "eso.rrd", "tdr")
+
+
+def test_tdr_training_set_is_f_n_plus_delta_f_hat_over_several_recordings(tmp_path):
+    a, b = flight_messages(100, pathway="neural_eso"), flight_messages(80, pathway="neural_eso", seq0=500, warm0=30)
+    write(tmp_path / "a.rrd", a)
+    write(tmp_path / "b.rrd", b)
+    ts = load_training_set([tmp_path / "a.rrd", tmp_path / "b.rrd"], "tdr")
+    est = [m for c, m in a if c == "estimate" and m.warm_ticks >= 25] + [m for c, m in b if c == "estimate"]
+    assert len(ts) == len(est) == 76 + 80
+    np.testing.assert_allclose(ts.y_mps2, [m.f_n_mps2[2] + m.delta_f_hat_mps2[2] for m in est], rtol=0, atol=0)
+    with pytest.raises(RecordingError, match="no usable 'eso'"):
+        load_training_set(tmp_path / "a.rrd", "eso")
+
+
+def test_a_resent_sample_counts_once(tmp_path):
+    msgs = flight_messages(60)
+    again = [(c, m) for c, m in msgs if c == "estimate"][40]
+    write(tmp_path / "r.rrd", msgs + [again])
+    assert len(select(read_recording(tmp_path / "r.rrd"), "eso").y_mps2) == 60 - 24
+
+
+def test_recordings_of_two_vehicles_are_refused_together(tmp_path):
+    write(tmp_path / "a.rrd", flight_messages(60))
+    w = FlightWriter(tmp_path / "b.rrd", vehicle="uav2", flight="uav2-test")
+    for c, m in flight_messages(60):
+        w.add(c, m)
+    w.close()
+    with pytest.raises(RecordingError, match="different vehicles"):
+        load_training_set([tmp_path / "a.rrd", tmp_path / "b.rrd"], "eso")
+
+
+def test_segment_paths():
+    assert str(segment_path("d", "uav1-x", 2)) == "d/uav1-x.seg2.rrd"
+
+
+def _sp(seq, thrust):
+    return SetpointMsg(seq=seq, stamp_s=1.0, state_stamp_s=1.0, t_s=0.0, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0,
+                       thrust_norm=thrust / 20, thrust_n=thrust, acc_cmd_enu_mps2=(0.0, 0.0, 0.0),
+                       estimate_source="estimator")
+
+
+def _st(seq):
+    return StateMsg(seq=seq, stamp_s=1.0, t_s=seq * DT, pos_enu_m=(0, 0, 1), vel_enu_mps=(0, 0, 0), roll_rad=0.0,
+                    pitch_rad=0.0, yaw_rad=0.0, source="sim")
+
+
+def test_flight_starts_at_thrust_ends_after_a_second_without_and_at_a_source_restart():
+    tr = FlightTracker(RecorderConfig())
+    assert not tr.on_message("setpoint", _sp(0, 5.0), 0.0).start, "no state seen yet"
+    tr.on_message("state", _st(0), 0.0)
+    assert tr.on_message("setpoint", _sp(0, 0.0), 0.0).start == ""
+    assert tr.on_message("setpoint", _sp(1, 5.0), 0.02).start.startswith("armed")
+    assert tr.on_message("setpoint", _sp(2, 0.0), 0.04).stop == ""
+    assert tr.on_message("setpoint", _sp(60, 0.0), 1.05).stop.startswith("landed")
+    assert tr.on_message("setpoint", _sp(61, 5.0), 1.1).start
+    tr.on_message("state", _st(70), 1.2)
+    assert "restarted" in tr.on_message("state", _st(0), 1.3).stop
+    tr.on_message("setpoint", _sp(1, 5.0), 1.32)
+    assert tr.tick(1.4).stop == "" and "no state samples" in tr.tick(3.4).stop
+
+
+def test_operator_stop_in_the_air_waits_for_the_next_arming_and_start_is_manual():
+    tr = FlightTracker(RecorderConfig())
+    tr.on_message("state", _st(0), 0.0)
+    tr.on_message("setpoint", _sp(0, 5.0), 0.0)
+    assert tr.command("stop")[0].stop == "operator stop"
+    assert not tr.on_message("setpoint", _sp(1, 5.0), 0.02).start, "still in the air: no automatic restart"
+    tr.on_message("setpoint", _sp(2, 0.0), 0.04)
+    assert tr.on_message("setpoint", _sp(3, 5.0), 0.06).start
+    tr2 = FlightTracker(RecorderConfig(auto=False))
+    tr2.on_message("state", _st(0), 0.0)
+    assert not tr2.on_message("setpoint", _sp(0, 5.0), 0.0).start
+    assert tr2.command("start")[0].start == "operator start"
+    assert tr2.on_message("setpoint", _sp(70, 0.0), 5.0).stop == "", "a manual recording ends by command only"
+    with pytest.raises(ValueError):
+        tr2.command("pause")
+
+
+# -- the example recording shipped with the project ---------------------------------------------
+EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
+
+
+def test_the_example_recording_is_small_and_gives_a_first_training_set():
+    assert EXAMPLE.stat().st_size < 2_000_000
+    ts = load_training_set(EXAMPLE, "eso")
+    rec = read_recording(EXAMPLE)
+    est = rec.channel("estimate")
+    assert len(est) == 600 and set(est.columns["pathway"]) == {"eso"}
+    # every warm sample (0.5 s = 25 periods) of the 12 s landing test, none on the ground
+    assert len(ts) == int(np.sum(est.columns["warm_ticks"] >= 25)) == 576
+    assert ts.z.shape == (576, 5) and ts.vehicle == "uav1"
+    z_height = ts.z[:, 0]
+    assert 0.05 < z_height.min() < 0.15 and 0.95 < z_height.max() < 1.05, "from 1 m down to 0.1 m"
+    assert rec.properties["params"]["estimator"]["pathway"] == "eso"
+
+
+def test_catalog_lists_the_example_and_flags_an_unreadable_file(tmp_path):
+    from recordings.catalog import catalog, format_table
+
+    (tmp_path / "good.rrd").write_bytes(EXAMPLE.read_bytes())
+    (tmp_path / "bad.rrd").write_bytes(b"garbage" * 100)
+    (tmp_path / ".x.compacting.rrd").write_bytes(b"scratch")
+    entries = {Path(e.path).name: e for e in catalog(tmp_path)}
+    assert set(entries) == {"good.rrd", "bad.rrd"}
+    good = entries["good.rrd"]
+    assert (good.vehicle, good.scenario, good.pathways, good.networks, good.lipschitz_bounds) == (
+        "uav1", "nominal_landing", ("eso",), ("base-L1.0",), (1.0,))
+    assert abs(good.duration_s - 11.98) < 1e-6 and good.samples == 600
+    assert entries["bad.rrd"].error
+    table = format_table(list(entries.values()))
+    assert "UNREADABLE" in table and "nominal_landing" in table
+
+
+def test_what_if_reproduces_the_flown_estimate_and_tells_another_one_apart():
+    from recordings.replay import WhatIf, what_if
+
+    rec = read_recording(EXAMPLE)
+    same = what_if(rec, WhatIf())
+    assert same.config["pathway"] == "eso" and same.samples > 500
+    # the same estimator on the same inputs: the lockstep flight is reproduced exactly
+    assert max(same.diff_max_mps2) < 1e-9
+    other = what_if(rec, WhatIf.parse("pathway=neural_eso,omega_o=25"))
+    assert other.diff_rms_mps2[2] > 0.01
+    assert other.flown_err_rms_mps2 == same.flown_err_rms_mps2 and other.whatif_err_rms_mps2 != same.whatif_err_rms_mps2
+    with pytest.raises(ValueError, match="unknown what-if setting"):
+        WhatIf.parse("gain=3")
+
+
+def test_bus_schedule_is_in_flight_order_and_paced_by_sample_time():
+    from recordings.replay import bus_schedule, restamped
+
+    sched = bus_schedule(read_recording(EXAMPLE))
+    offsets = [o for o, _, _ in sched]
+    assert offsets == sorted(offsets) and abs(offsets[-1] - 11.98) < 1e-9
+    assert [t for _, t, _ in sched[:2]] == ["state", "truth"]
+    state = restamped(sched[0][2], 5.0)
+    assert state.source == "replay" and state.stamp_s == 5.0 and state.pos_enu_m == sched[0][2].pos_enu_m
+
+
+def test_a_recorder_restarted_mid_flight_repairs_the_cut_file_and_writes_the_next_segment(tmp_path, monkeypatch):
+    from services.recorder import Recorder
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))  # the rerun CLI's analytics settings
+    statuses = []
+    config = RecorderConfig(directory=str(tmp_path), compact=True)
+    msgs = flight_messages(120)
+    first = Recorder(config, "uav1", publish_status=statuses.append, log=lambda *_: None)
+    for channel, msg in msgs[:300]:
+        first._handle(("msg", channel, msg.to_bytes(), 10.0 + msg.stamp_s))
+    first.writer.flush()  # flushed as the writer thread would, then "killed": never closed
+    flight = first.flight
+    assert statuses[-1].recording and statuses[-1].flight == flight and statuses[-1].segment == 0
+    second = Recorder(config, "uav1", publish_status=statuses.append, log=lambda *_: None)
+    second._repair_crashed(second.active.load())
+    for channel, msg in msgs[300:]:
+        second._handle(("msg", channel, msg.to_bytes(), 10.0 + msg.stamp_s))
+    assert (second.flight, second.segment) == (flight, 1)
+    second._handle(("msg", "state", b"\x93garbage", 20.0))
+    second.stop()
+    second._end("test over", keep_active=False)
+    second.join_compactions()
+    seg0, seg1 = read_recording(tmp_path / f"{flight}.seg0.rrd"), read_recording(tmp_path / f"{flight}.seg1.rrd")
+    assert seg1.properties["start"]["resumed"] is True and seg1.properties["summary"]["rejected"] == 1
+    states = seg0.channel("state").messages() + seg1.channel("state").messages()
+    assert states == [m for c, m in msgs if c == "state"], "the two segments hold the whole flight, once"
+    from recordings.reader import verify
+
+    assert verify(tmp_path / f"{flight}.seg0.rrd")[0], "the cut segment was repaired"
+    assert not (tmp_path / ".uav1.active.json").exists()
