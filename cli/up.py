@@ -22,8 +22,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--pathway", default="neural_eso", choices=("neural_eso", "eso", "nn", "none"))
     p.add_argument("--name", action="append", default=None, dest="names",
                    help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
-    p.add_argument("--vehicle", default="direct", choices=("direct",),
-                   help="how setpoints reach the vehicle: direct (the sim source applies them)")
+    p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink"),
+                   help="how setpoints reach the vehicle: direct (the sim source applies them) or mavlink (the sim "
+                        "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK)")
+    p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
+    p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
@@ -47,14 +50,27 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
             specific += ["--network", args.network]
     elif role == "controller":
         specific = ["--mission", args.mission, "--rate", str(args.rate)]
+    elif role == "px4_gateway":
+        specific = ["--mavlink", f"udpin://127.0.0.1:{args.mavlink_port + index}", "--forward-sources", "sim,mocap"]
+    if role == "source" and args.vehicle == "mavlink":
+        specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
+        if args.mavlink_log:
+            specific += ["--mavlink-log", args.mavlink_log if index == 0 else f"{args.mavlink_log}.{vehicle}"]
     return python_module_argv("cli.main", "run", role, *common, *specific)
+
+
+def _option(args, name: str) -> bool:
+    """A boolean ``neso up`` option a role may be enabled by (some are derived from others)."""
+    if name == "mavlink_vehicle":
+        return args.vehicle == "mavlink"
+    return bool(getattr(args, name))
 
 
 def build_specs(args) -> list[ProcessSpec]:
     vehicles = args.names or ["uav1"]
     specs = []
     for role in ROLES:
-        if role.enabled_by and not getattr(args, role.enabled_by):
+        if role.enabled_by and not _option(args, role.enabled_by):
             continue
         if role.bus_role == "router":
             argv = python_module_argv("cli.main", "run", role.name, "--listen", args.hub)

@@ -40,6 +40,9 @@ ROLES: tuple[Role, ...] = (
          publishes=_topics("estimate"), subscribes=_topics("state", "setpoint")),
     Role("controller", "services.controller", "mission + state + f̂ → attitude setpoint (local ESO if f̂ goes stale)",
          publishes=_topics("setpoint", "reference"), subscribes=_topics("state", "estimate")),
+    Role("px4_gateway", "services.px4_gateway",
+         "setpoints → PX4 offboard attitude through MAVSDK; vehicle telemetry back; mocap → external vision",
+         publishes=_topics("telemetry"), subscribes=_topics("setpoint", "state"), enabled_by="mavlink_vehicle"),
 )
 
 GRAPH: dict[str, Role] = {role.name: role for role in ROLES}

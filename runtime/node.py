@@ -50,6 +50,7 @@ class Node:
         self.stats = HealthStats(service, tuple(self.role.subscribes) + ("param", "cmd"))
         self.status_hook: Callable[[], str] | None = None
         self._command_handler: CommandHandler | None = None
+        self._command_exclusive = True
         self._stop = threading.Event()
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
@@ -103,8 +104,11 @@ class Node:
             return None
 
     # -- parameters and commands -----------------------------------------------------------
-    def on_command(self, handler: CommandHandler) -> None:
+    def on_command(self, handler: CommandHandler, *, exclusive: bool = True) -> None:
+        """``exclusive=False``: the handler runs without the node lock (it may wait for a device's
+        answer; it must guard the state it shares with the stream handlers itself)."""
         self._command_handler = handler
+        self._command_exclusive = exclusive
 
     def _on_param_query(self, query) -> None:
         try:
@@ -134,6 +138,8 @@ class Node:
             return
         if self._command_handler is None:
             ok, message = False, f"{self.service} takes no commands"
+        elif not self._command_exclusive:
+            result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
         else:
             with self.lock:
                 result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
