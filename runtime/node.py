@@ -138,10 +138,11 @@ class Node:
             return
         if self._command_handler is None:
             ok, message = False, f"{self.service} takes no commands"
-        elif not self._command_exclusive:
-            result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
         else:
-            with self.lock:
+            if self._command_exclusive:
+                with self.lock:
+                    result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
+            else:
                 result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
             ok, message = result if result is not None else (False, "command failed (see events)")
         self.log(f"command {request.name} {request.args}: " + ("ok" if ok else "refused") + (f": {message}" if message else ""))

@@ -14,8 +14,8 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
   a tilt beyond ``max_tilt_rad`` is scaled back to it; a thrust outside
   [``thrust_min_norm``, ``thrust_max_norm``] is clamped; each is counted;
 - **stale setpoints**: in offboard, ``stale_hold_s`` without a setpoint → command hold; still
-  nothing ``land_after_s`` later → command land. Setpoints coming back do not resume offboard:
-  an operator does (``offboard_start``). PX4's own offboard-loss failsafe stays the last line.
+  ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
+  Setpoints coming back (a restarted controller) do not resume offboard by themselves. PX4's own offboard-loss failsafe stays the last line.
 
 The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
 companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
@@ -125,9 +125,10 @@ class GatewayCore:
             self.failsafe, self._failsafe_since_s = "hold", now_s
             self.events.append(("warning", f"no setpoint for {age:.2f} s in offboard: commanding hold"))
             return "hold"
-        if self.failsafe == "hold" and stale and now_s - self._failsafe_since_s >= self.config.land_after_s:
+        if self.failsafe == "hold" and now_s - self._failsafe_since_s >= self.config.land_after_s:
             self.failsafe, self._failsafe_since_s = "land", now_s
-            self.events.append(("warning", f"still no setpoint {self.config.land_after_s:.1f} s after hold: commanding land"))
+            self.events.append(("warning", f"{self.config.land_after_s:.1f} s in failsafe hold without an operator: "
+                                           "commanding land"))
             return "land"
         return ""
 
