@@ -369,20 +369,32 @@ class Px4Link:
 
     def _telemetry_loop(self) -> None:
         put = self.node.publisher("telemetry")
+        last_problem = ""
         while not self.node.wait(1.0 / self.config.telemetry_hz):
-            t = self.tele
-            roll, pitch, yaw = attitude_enu_from_ned(*(math.radians(a) for a in t["att"]))
-            n, e, d = t["pos_ned"]
-            vn, ve, vd = t["vel_ned"]
-            with self.node.lock:
-                hover, age, failsafe = self.core.hover_thrust_norm, self.core.setpoint_age_s(time.monotonic()), self.core.failsafe
-            volts = t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0
-            remaining = t["battery"] if math.isfinite(t["battery"]) else -1.0
-            put(TelemetryMsg(stamp_s=time.monotonic(), connected=self.system is not None and self.system.is_connected(),
-                             armed=t["armed"], in_air=t["in_air"], flight_mode=t["mode"].lower()[:32],
-                             roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, pos_enu_m=(e, n, -d), vel_enu_mps=(ve, vn, -vd),
-                             battery_v=min(max(volts, 0.0), 100.0), battery_remaining=min(max(remaining, -1.0), 1.0),
-                             hover_thrust_norm=min(max(hover, 0.0), 1.0), setpoint_age_s=age, failsafe=failsafe))
+            try:
+                put(self._telemetry())
+            except Exception as exc:  # e.g. a value MAVSDK reported as NaN before its first message
+                if str(exc) != last_problem:
+                    last_problem = str(exc)
+                    self.node.log(f"telemetry not published: {type(exc).__name__}: {exc}")
+
+    def _telemetry(self) -> TelemetryMsg:
+        """The vehicle's report (converted to ENU/FLU) plus the gateway's own state; validated."""
+        t = self.tele
+        roll, pitch, yaw = attitude_enu_from_ned(*(math.radians(a) for a in t["att"]))
+        n, e, d = t["pos_ned"]
+        vn, ve, vd = t["vel_ned"]
+        with self.node.lock:
+            hover, failsafe = self.core.hover_thrust_norm, self.core.failsafe
+            age = self.core.setpoint_age_s(time.monotonic())
+        volts = t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0
+        remaining = t["battery"] if math.isfinite(t["battery"]) else -1.0
+        return TelemetryMsg.validate(
+            stamp_s=time.monotonic(), connected=self.system is not None and self.system.is_connected(),
+            armed=t["armed"], in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
+            yaw_rad=yaw, pos_enu_m=[e, n, -d], vel_enu_mps=[ve, vn, -vd], battery_v=min(max(volts, 0.0), 100.0),
+            battery_remaining=min(max(remaining, -1.0), 1.0), hover_thrust_norm=min(max(hover, 0.0), 1.0),
+            setpoint_age_s=age, failsafe=failsafe)
 
     def _drain_events(self) -> None:
         while self.core.events:

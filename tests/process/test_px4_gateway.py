@@ -84,12 +84,14 @@ class Flight:
 
 
 def hover_error_m(flight: Flight, first_hover_seq: int, skip: int = 100, n: int = 150) -> float:
-    """RMS ‖truth − reference‖ over ``n`` samples of the hover segment, ``skip`` samples into it."""
-    refs = {m.seq: m.pos_enu_m for m in flight.probe.get("reference") if m.segment == "hover" and m.seq >= first_hover_seq}
-    truth = {m.seq: m.pos_enu_m for m in flight.probe.get("truth")}
-    seqs = sorted(refs)[skip:skip + n]
-    assert len(seqs) == n, f"only {len(seqs)} hover samples"
-    return float(np.sqrt(np.mean([np.sum(np.subtract(truth[k], refs[k]) ** 2) for k in seqs if k in truth])))
+    """RMS ‖truth − reference‖ over samples ``skip`` … ``skip + n`` of the hover segment (samples the
+    loaded machine dropped a reference for are left out; at least 80 % must be there)."""
+    lo, hi = first_hover_seq + skip, first_hover_seq + skip + n
+    refs = {m.seq: m.pos_enu_m for m in flight.probe.get("reference") if m.segment == "hover" and lo <= m.seq < hi}
+    truth = {m.seq: m.pos_enu_m for m in flight.probe.get("truth") if lo <= m.seq < hi}
+    seqs = sorted(set(refs) & set(truth))
+    assert len(seqs) >= 0.8 * n, f"only {len(seqs)} of {n} hover samples"
+    return float(np.sqrt(np.mean([np.sum(np.subtract(truth[k], refs[k]) ** 2) for k in seqs])))
 
 
 def fly_takeoff_and_hover(flight: Flight, hover_s: float = 6.5) -> float:
@@ -97,7 +99,10 @@ def fly_takeoff_and_hover(flight: Flight, hover_s: float = 6.5) -> float:
     start = flight.probe.get("state")[-1].seq
     first = flight.probe.wait_for("reference", lambda m: m.segment == "hover" and m.seq > start, 20.0)
     flight.probe.wait_for("reference", lambda m: m.seq > first.seq + int(hover_s * 50), hover_s + 10)
-    return hover_error_m(flight, first.seq, n=int(hover_s * 50) - 100)
+    err = hover_error_m(flight, first.seq, n=int(hover_s * 50) - 100)
+    z = [round(m.pos_enu_m[2], 3) for m in flight.probe.get("truth") if m.seq >= start][::25]
+    assert err < 0.05, f"hover error {err * 100:.1f} cm; truth z every 0.5 s from the command: {z}"
+    return err
 
 
 @pytest.fixture(scope="module")
@@ -175,7 +180,7 @@ def test_arm_takeoff_hover_landing_test_and_land_through_the_gateway(flight):
     err = fly_takeoff_and_hover(flight)
     flight.hover_error_m = err
     print(f"mavlink hover RMS error {err * 100:.2f} cm")
-    assert err < 0.05
+
     tele = flight.probe.wait_for("telemetry", lambda m: m.armed and m.flight_mode == "offboard", 2.0)
     assert tele.in_air and tele.battery_v > 13.0 and 0.0 < tele.battery_remaining <= 1.0
     assert abs(tele.pos_enu_m[2] - flight.truth_z()) < 0.1, "PX4's own position estimate reaches the bus"
@@ -203,7 +208,11 @@ def test_controller_killed_mid_hover_the_gateway_holds_within_half_a_second_then
     fly_takeoff_and_hover(flight, hover_s=3.0)
     killed_at = time.monotonic()
     os.kill(flight.pid_of("controller"), signal.SIGKILL)
-    flight.probe.wait_for("telemetry", lambda m: m.failsafe == "land", 10.0)
+    try:
+        flight.probe.wait_for("telemetry", lambda m: m.failsafe == "land", 10.0)
+    except AssertionError:
+        raise AssertionError([line for line in flight.output if "px4_gateway |" in line][-20:],
+                             [e for e in flight.commands() if e["t"] >= killed_at]) from None
     flight.probe.wait_for("telemetry", lambda m: m.stamp_s > killed_at and not m.armed, 15.0)
     after = [e for e in flight.commands() if e["t"] >= killed_at]
     holds = [e for e in after if e["command"] == 176 and tuple(e["params"][1:3]) == HOLD]
