@@ -5,7 +5,8 @@ tick; network inference at batch 1; and the whole ``neso experiment paper`` pipe
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
-Pass ``--quick`` to skip the paper pipeline and shorten the bus section (10 s flights, 3 s floors).
+Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
+(:mod:`bench.gateway`, ~25 s). Pass ``--quick`` to skip the paper pipeline and shorten the bus section (10 s flights, 3 s floors).
 """
 from __future__ import annotations
 
@@ -64,6 +65,10 @@ def main(argv: list[str]) -> int:
     print(flush=True)
     _print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
     print(FOOTNOTE)
+    from bench.gateway import COLUMNS as GATEWAY_COLUMNS, gateway_rows
+
+    print(flush=True)
+    _print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
     return 0
 
 

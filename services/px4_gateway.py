@@ -55,7 +55,7 @@ class GatewayConfig:
     max_tilt_rad: float = math.radians(40.0)
     thrust_min_norm: float = 0.0
     thrust_max_norm: float = 0.9
-    stale_hold_s: float = 0.25
+    stale_hold_s: float = 0.35
     land_after_s: float = 3.0
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
@@ -197,7 +197,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-learn-hover", action="store_true", help="keep the hover thrust fixed")
     parser.add_argument("--max-tilt-deg", type=float, default=40.0)
     parser.add_argument("--thrust-max", type=float, default=0.9)
-    parser.add_argument("--stale-hold", type=float, default=0.25, help="seconds without setpoints before hold")
+    parser.add_argument("--stale-hold", type=float, default=0.35, help="seconds without setpoints before hold")
     parser.add_argument("--land-after", type=float, default=3.0, help="seconds in failsafe hold before land")
     parser.add_argument("--forward-sources", default="mocap",
                         help="state sources forwarded to PX4 as external vision (comma-separated; '' none)")
