@@ -160,7 +160,7 @@ class MavlinkVehicle:
         with self.lock:
             if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
                 if params[0] >= 0.5:
-                    self.armed = True
+                    self.armed, self._touchdown_s = True, None
                 elif self._on_ground or params[1] == 21196:  # 21196: forced disarm
                     self.armed = False
                 else:
@@ -235,7 +235,8 @@ class MavlinkVehicle:
                 if on_ground:
                     self._touchdown_s = self._touchdown_s or now
                     if now - self._touchdown_s >= self.config.disarm_after_landing_s:
-                        self.armed = False
+                        self.armed, self._touchdown_s = False, None
+                        self._set_mode(MAIN_AUTO, SUB_READY)  # the next arming starts from "ready", not from "land"
                         self._record({"t": now, "kind": "disarmed", "why": "landed"})
                     return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
             out = self._position.step(meas, Reference(pos_enu_m=target, vel_enu_mps=vel, yaw_rad=meas.yaw_rad),
