@@ -13,7 +13,9 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
 - **sanity**: a non-finite setpoint is refused (nothing sent, the last valid one stays);
   a tilt beyond ``max_tilt_rad`` is scaled back to it; a thrust outside
   [``thrust_min_norm``, ``thrust_max_norm``] is clamped; each is counted;
-- **stale setpoints**: in offboard, ``stale_hold_s`` without a setpoint → command hold; still
+- **stale setpoints**: in offboard, ``stale_hold_s`` without a setpoint while at least
+  ``stale_states`` states arrived unanswered (the controller is gone, not the whole machine
+  stalled), or ``stale_max_s`` without a setpoint whatever the states do → command hold;
   ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
   Setpoints coming back (a restarted controller) do not resume offboard by themselves. PX4's own offboard-loss failsafe stays the last line.
 
@@ -55,7 +57,9 @@ class GatewayConfig:
     max_tilt_rad: float = math.radians(40.0)
     thrust_min_norm: float = 0.0
     thrust_max_norm: float = 0.9
-    stale_hold_s: float = 0.35
+    stale_hold_s: float = 0.3
+    stale_states: int = 15
+    stale_max_s: float = 1.0
     land_after_s: float = 3.0
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
@@ -83,6 +87,7 @@ class GatewayCore:
         self.last_sent: Px4Attitude | None = None
         self.failsafe = ""  # "", "hold" or "land"
         self._failsafe_since_s = 0.0
+        self.states_since_setpoint = 0
         self._prev_vz: tuple[float, float] | None = None
         self._acc_z = 0.0
         self._calibration: list[float] | None = None
@@ -97,6 +102,7 @@ class GatewayCore:
             self.counts["refused_nonfinite"] += 1
             return None
         self.last_setpoint_s = now_s
+        self.states_since_setpoint = 0
         tilt = tilt_rad(roll, pitch)
         if tilt > self.config.max_tilt_rad:
             roll, pitch = _scale_tilt(roll, pitch, self.config.max_tilt_rad)
@@ -120,10 +126,12 @@ class GatewayCore:
             self.failsafe = "" if self.failsafe != "land" else self.failsafe
             return ""
         age = self.setpoint_age_s(now_s)
-        stale = age < 0 or age > self.config.stale_hold_s
+        c = self.config
+        stale = age < 0 or (age > c.stale_hold_s and self.states_since_setpoint >= c.stale_states) or age > c.stale_max_s
         if self.failsafe == "" and offboard and stale:
             self.failsafe, self._failsafe_since_s = "hold", now_s
-            self.events.append(("warning", f"no setpoint for {age:.2f} s in offboard: commanding hold"))
+            self.events.append(("warning", f"no setpoint for {age:.2f} s ({self.states_since_setpoint} states unanswered) "
+                                           "in offboard: commanding hold"))
             return "hold"
         if self.failsafe == "hold" and now_s - self._failsafe_since_s >= self.config.land_after_s:
             self.failsafe, self._failsafe_since_s = "land", now_s
@@ -139,6 +147,7 @@ class GatewayCore:
     # -- hover thrust --------------------------------------------------------------------
     def on_state(self, state: StateMsg, now_s: float, *, offboard: bool) -> None:
         """Learn the hover thrust from the state (ENU) and the last thrust sent."""
+        self.states_since_setpoint += 1
         vz = state.vel_enu_mps[2]
         if self._prev_vz is not None and state.t_s > self._prev_vz[0]:
             dt = state.t_s - self._prev_vz[0]
@@ -197,7 +206,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-learn-hover", action="store_true", help="keep the hover thrust fixed")
     parser.add_argument("--max-tilt-deg", type=float, default=40.0)
     parser.add_argument("--thrust-max", type=float, default=0.9)
-    parser.add_argument("--stale-hold", type=float, default=0.35, help="seconds without setpoints before hold")
+    parser.add_argument("--stale-hold", type=float, default=0.3,
+                        help="seconds without setpoints (with --stale-states states unanswered) before hold")
+    parser.add_argument("--stale-states", type=int, default=15, help="unanswered states before hold")
+    parser.add_argument("--stale-max", type=float, default=1.0, help="seconds without setpoints before hold, states or not")
     parser.add_argument("--land-after", type=float, default=3.0, help="seconds in failsafe hold before land")
     parser.add_argument("--forward-sources", default="mocap",
                         help="state sources forwarded to PX4 as external vision (comma-separated; '' none)")
@@ -207,7 +219,8 @@ def config_from_args(args) -> GatewayConfig:
     return GatewayConfig(mavlink=args.mavlink, hover_thrust_norm=args.hover_thrust,
                          nominal_hover_thrust_norm=args.nominal_hover_thrust, learn_hover=not args.no_learn_hover,
                          max_tilt_rad=math.radians(args.max_tilt_deg), thrust_max_norm=args.thrust_max,
-                         stale_hold_s=args.stale_hold, land_after_s=args.land_after,
+                         stale_hold_s=args.stale_hold, stale_states=args.stale_states, stale_max_s=args.stale_max,
+                         land_after_s=args.land_after,
                          forward_sources=tuple(s for s in args.forward_sources.split(",") if s))
 
 

@@ -61,27 +61,42 @@ def test_non_finite_setpoint_is_refused_and_counted():
     assert core.counts["refused_nonfinite"] == 1 and core.last_sent is None and core.setpoint_age_s(2.0) == -1.0
 
 
+def feed_states(core, t0, t1):
+    for k in range(int(round((t1 - t0) * 50))):
+        core.on_state(state(t0 + k / 50), t0 + k / 50, offboard=True)
+
+
 def test_stale_setpoints_in_offboard_hold_then_land_and_only_in_offboard():
-    core = GatewayCore(GatewayConfig(stale_hold_s=0.25, land_after_s=3.0))
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_states=15, stale_max_s=1.0, land_after_s=3.0))
     core.on_setpoint(setpoint(), 10.0)
+    feed_states(core, 10.0, 10.2)
     assert core.check_stale(10.2, offboard=True, armed=True) == ""
+    feed_states(core, 10.2, 10.32)
     assert core.check_stale(11.0, offboard=False, armed=True) == "", "not in offboard: PX4 flies its own mode"
-    assert core.check_stale(10.26, offboard=True, armed=True) == "hold"
+    assert core.check_stale(10.32, offboard=True, armed=True) == "hold"
     assert core.check_stale(11.0, offboard=False, armed=True) == ""  # now in hold
     core.on_setpoint(setpoint(), 12.0)  # a restarted controller does not cancel the landing
-    assert core.check_stale(13.27, offboard=False, armed=True) == "land"
+    assert core.check_stale(13.33, offboard=False, armed=True) == "land"
     assert core.failsafe == "land" and core.check_stale(20.0, offboard=False, armed=True) == ""
     core.clear_failsafe()
     assert core.failsafe == ""
 
 
-def test_an_operator_taking_over_cancels_the_failsafe_landing():
-    core = GatewayCore(GatewayConfig(stale_hold_s=0.25, land_after_s=3.0))
+def test_a_stall_of_the_whole_machine_is_not_taken_for_a_dead_controller_up_to_stale_max():
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_states=15, stale_max_s=1.0))
     core.on_setpoint(setpoint(), 10.0)
-    assert core.check_stale(10.3, offboard=True, armed=True) == "hold"
+    feed_states(core, 10.0, 10.1)  # then nothing at all: the source stalled too
+    assert core.check_stale(10.6, offboard=True, armed=True) == ""
+    assert core.check_stale(11.01, offboard=True, armed=True) == "hold"
+
+
+def test_an_operator_taking_over_cancels_the_failsafe_landing():
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_max_s=0.5, land_after_s=3.0))
+    core.on_setpoint(setpoint(), 10.0)
+    assert core.check_stale(10.6, offboard=True, armed=True) == "hold"
     core.clear_failsafe()  # offboard_start by an operator
     core.on_setpoint(setpoint(), 11.0)
-    assert core.check_stale(14.0 - 2.9, offboard=True, armed=True) == ""
+    assert core.check_stale(11.1, offboard=True, armed=True) == ""
 
 
 def state(t, z=1.0, vz=0.0) -> StateMsg:
