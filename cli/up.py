@@ -87,6 +87,10 @@ def build_specs(args) -> list[ProcessSpec]:
 
 def run(args) -> int:
     vehicles = args.names or ["uav1"]
+    if args.lockstep and args.vehicle == "mavlink":
+        print("neso up: --vehicle mavlink runs in real time only (MAVSDK and the MAVLink link keep their own clock)",
+              flush=True)
+        return 2
     supervisor = Supervisor(build_specs(args), echo=lambda line: print(line, flush=True))
     print(f"neso up: hub {args.hub}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
