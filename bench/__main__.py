@@ -7,8 +7,10 @@ Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Ze
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
 Then recording (:mod:`bench.recording`, ~80 s): loop latency at 50 Hz with the recorder off beside on,
 the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
-Pass ``--quick`` to skip the paper pipeline and shorten the bus section (10 s flights, 3 s floors).
-Last, the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
+Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
+Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
+(:mod:`bench.gateway`, ~25 s).
+Pass ``--quick`` to skip the paper pipeline and shorten every section.
 """
 from __future__ import annotations
 
@@ -76,6 +78,11 @@ def main(argv: list[str]) -> int:
 
     print(flush=True)
     _print_table(TDR_COLUMNS, tdr_rows(quick))
+
+    from bench.gateway import COLUMNS as GATEWAY_COLUMNS, gateway_rows
+
+    print(flush=True)
+    _print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
     return 0
 
 

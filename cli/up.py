@@ -22,8 +22,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--pathway", default="neural_eso", choices=("neural_eso", "eso", "nn", "none"))
     p.add_argument("--name", action="append", default=None, dest="names",
                    help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
-    p.add_argument("--vehicle", default="direct", choices=("direct",),
-                   help="how setpoints reach the vehicle: direct (the sim source applies them)")
+    p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink"),
+                   help="how setpoints reach the vehicle: direct (the sim source applies them) or mavlink (the sim "
+                        "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK)")
+    p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
+    p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
@@ -55,14 +58,30 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--recordings-dir", args.recordings_dir]
     elif role == "trainer":
         specific = ["--registry", args.registry, "--recordings-dir", args.recordings_dir]
+    elif role == "px4_gateway":
+        specific = ["--mavlink", f"udpin://127.0.0.1:{args.mavlink_port + index}", "--forward-sources", "sim,mocap"]
+    if role == "source" and args.vehicle == "mavlink":
+        specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
+        if args.mavlink_log:
+            specific += ["--mavlink-log", args.mavlink_log if index == 0 else f"{args.mavlink_log}.{vehicle}"]
     return python_module_argv("cli.main", "run", role, *common, *specific)
+
+
+def role_enabled(args, role) -> bool:
+    """Whether ``neso up`` starts ``role``: always, or when its ``enabled_by`` option is set
+    (``mavlink_vehicle`` is derived from ``--vehicle mavlink``)."""
+    if not role.enabled_by:
+        return True
+    if role.enabled_by == "mavlink_vehicle":
+        return args.vehicle == "mavlink"
+    return bool(getattr(args, role.enabled_by))
 
 
 def build_specs(args) -> list[ProcessSpec]:
     vehicles = args.names or ["uav1"]
     specs = []
     for role in ROLES:
-        if role.enabled_by and not getattr(args, role.enabled_by):
+        if not role_enabled(args, role):
             continue
         if role.bus_role == "router":
             argv = python_module_argv("cli.main", "run", role.name, "--listen", args.hub)
@@ -79,6 +98,10 @@ def build_specs(args) -> list[ProcessSpec]:
 
 def run(args) -> int:
     vehicles = args.names or ["uav1"]
+    if args.lockstep and args.vehicle == "mavlink":
+        print("neso up: --vehicle mavlink runs in real time only (MAVSDK and the MAVLink link keep their own clock)",
+              flush=True)
+        return 2
     supervisor = Supervisor(build_specs(args), echo=lambda line: print(line, flush=True))
     print(f"neso up: hub {args.hub}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)

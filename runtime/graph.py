@@ -45,6 +45,9 @@ ROLES: tuple[Role, ...] = (
          enabled_by="record"),
     Role("trainer", "services.trainer", "trains, certifies and stores networks from recordings; offers them to the estimator",
          publishes={}, subscribes=_topics("network"), enabled_by="trainer"),
+    Role("px4_gateway", "services.px4_gateway",
+         "setpoints → PX4 offboard attitude through MAVSDK; vehicle telemetry back; mocap → external vision",
+         publishes=_topics("telemetry"), subscribes=_topics("setpoint", "state"), enabled_by="mavlink_vehicle"),
 )
 
 GRAPH: dict[str, Role] = {role.name: role for role in ROLES}

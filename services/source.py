@@ -60,6 +60,9 @@ class SourceConfig:
     wait_for: tuple[str, ...] = ("estimator", "controller")
     lockstep_resend_s: float = 1.0
     mocap: MocapConfig = field(default_factory=MocapConfig)
+    link: str = "direct"  # "direct": bus setpoints act; "mavlink": a MAVLink PX4 stand-in takes them (sim/mavlink_vehicle.py)
+    mavlink_out: str = "udpout:127.0.0.1:14540"
+    mavlink_log: str = ""
 
 
 class SimSource:
@@ -169,6 +172,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mocap-host", default="127.0.0.1")
     parser.add_argument("--rigid-body", default="uav1", help="the vehicle's rigid-body name in the mocap software")
     parser.add_argument("--frame", default="y_up", help=f"mocap frame: {sorted(FRAMES)} or 9 numbers (ENU from mocap)")
+    parser.add_argument("--link", default="direct", choices=("direct", "mavlink"),
+                        help="how setpoints reach the simulated vehicle: direct (bus setpoints) or mavlink "
+                             "(it presents itself as a PX4 on --mavlink-out; the px4_gateway flies it)")
+    parser.add_argument("--mavlink-out", default="udpout:127.0.0.1:14540",
+                        help="where the simulated PX4 sends its MAVLink (the gateway's udpin address)")
+    parser.add_argument("--mavlink-log", default="", help="JSON-lines log of every MAVLink command/setpoint received")
 
 
 def config_from_args(args) -> SourceConfig:
@@ -177,6 +186,7 @@ def config_from_args(args) -> SourceConfig:
         lockstep=getattr(args, "lockstep", False), duration_s=args.duration,
         wait_for=tuple(s for s in args.wait_for.split(",") if s),
         mocap=MocapConfig(type=args.mocap_type, hostname=args.mocap_host, rigid_body=args.rigid_body, frame=args.frame),
+        link=args.link, mavlink_out=args.mavlink_out, mavlink_log=args.mavlink_log,
     )
 
 
@@ -188,6 +198,10 @@ def run(args, bus) -> int:
     if config.backend == "mocap":
         frame_matrix(config.mocap.frame)  # refuse a bad frame before joining the bus
         return run_node(node, lambda n: _run_mocap(n, config))
+    if config.link == "mavlink":
+        if config.lockstep:
+            raise SystemExit("source: --link mavlink runs in real time only (MAVSDK streams on its own clock)")
+        return run_node(node, lambda n: _run_sim_mavlink(n, config))
     return run_node(node, lambda n: _run_sim(n, config))
 
 
@@ -231,6 +245,45 @@ def _run_sim(node, config: SourceConfig) -> None:
                 next_tick = time.monotonic()  # fell behind by more than a period: re-anchor
     node.log(f"done: {core.seq + 1} samples, t={core.sim.t_s:.2f} s, deadline misses {misses[0]}")
     node.event("info", f"flight finished after {core.seq + 1} samples ({core.sim.t_s:.2f} s)")
+
+
+def _run_sim_mavlink(node, config: SourceConfig) -> None:
+    """Real time; the setpoint of each period comes from the simulated PX4 (its mode decides:
+    offboard attitude targets, or its own hold/take-off/land), not from the bus."""
+    from runtime.schema import state_measurement
+    from sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+
+    core = SimSource(config)
+    vehicle = MavlinkVehicle(VehicleConfig(target=config.mavlink_out, log_path=config.mavlink_log,
+                                           hover_thrust_norm=core.sim.config.params.hover_thrust_norm),
+                             dt_s=1.0 / config.rate_hz)
+    put_state, put_truth = node.publisher("state"), node.publisher("truth")
+    node.status_hook = lambda: (f"real time, MAVLink vehicle on {config.mavlink_out}: mode {vehicle.mode_name}, "
+                                f"armed {vehicle.armed}, t={core.sim.t_s:.2f} s, sample {core.seq}")
+    node.log(f"MAVLink PX4 stand-in sending to {config.mavlink_out}" + (f", log {config.mavlink_log}" if config.mavlink_log else ""))
+    n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
+    period = 1.0 / config.rate_hz
+    meas = core.sim._measurement()
+    next_tick = time.monotonic()
+    try:
+        while not node.stopping and (n_total is None or core.seq + 1 < n_total):
+            with node.lock:
+                core.setpoint = vehicle.control(meas, on_ground=bool(core.sim.truth.on_ground))
+                state, truth = core.step()
+                meas = state_measurement(state)
+                vehicle.publish(meas, t_s=truth.t_s)
+                put_state(state)
+                put_truth(truth)
+                node.stats.output(time.monotonic() - state.stamp_s)
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                node.wait(delay)
+            elif delay < -period:
+                next_tick = time.monotonic()
+    finally:
+        vehicle.close()
+    node.log(f"done: {core.seq + 1} samples, t={core.sim.t_s:.2f} s")
 
 
 def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) -> None:

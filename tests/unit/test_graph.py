@@ -7,7 +7,7 @@ from pathlib import Path
 import yaml
 
 from cli.main import build_parser
-from cli.up import build_specs
+from cli.up import build_specs, role_enabled
 from runtime.graph import GRAPH, ROLES, Role, check_graph
 from runtime.schema import EstimateMsg, StateMsg
 
@@ -31,7 +31,7 @@ def test_the_check_catches_a_missing_publisher_a_second_publisher_and_a_wrong_ty
 def test_launcher_starts_exactly_the_declared_roles():
     args = build_parser().parse_args(["up"])
     specs = build_specs(args)
-    assert [s.name for s in specs] == [r.name for r in ROLES]
+    assert [s.name for s in specs] == [r.name for r in ROLES if role_enabled(args, r)]
     for spec in specs:
         i = spec.argv.index("run")
         assert spec.argv[i + 1] == spec.name
@@ -73,3 +73,15 @@ def test_every_role_module_has_the_service_entry_points():
         module = importlib.import_module(r.module)
         assert callable(module.add_arguments) and callable(module.run)
         module.add_arguments(argparse.ArgumentParser())
+
+
+def test_the_px4_gateway_runs_only_with_the_mavlink_vehicle_and_both_share_one_port():
+    direct = [s.name for s in build_specs(build_parser().parse_args(["up"]))]
+    assert "px4_gateway" not in direct
+    specs = {s.name: s.argv for s in build_specs(build_parser().parse_args(["up", "--vehicle", "mavlink",
+                                                                             "--mavlink-port", "15000"]))}
+    assert "px4_gateway" in specs
+    gateway, source = specs["px4_gateway"], specs["source"]
+    assert gateway[gateway.index("--mavlink") + 1] == "udpin://127.0.0.1:15000"
+    assert source[source.index("--link") + 1] == "mavlink"
+    assert source[source.index("--mavlink-out") + 1] == "udpout:127.0.0.1:15000"

@@ -1,0 +1,115 @@
+"""Latency the PX4 gateway adds: a setpoint published on the bus → SET_ATTITUDE_TARGET at the vehicle.
+
+Real processes: a hub and ``neso run px4_gateway`` (MAVSDK 4.x, hover learning off so the
+thrust passes unchanged); in this process the MAVLink vehicle endpoint of the simulator
+(:class:`sim.mavlink_vehicle.MavlinkVehicle`, no physics: it only answers and logs) and a
+publisher of setpoints at the control rate, each with a unique thrust (0.2 + k·10⁻⁴, distinct
+in MAVLink's float32). Per setpoint: (first arrival at the vehicle of that thrust, stamped with
+``time.monotonic()`` by the vehicle's receiver thread) − the setpoint's ``stamp_s``. MAVSDK's
+20 Hz re-sends of an old setpoint are not counted (first arrival only). A probe subscriber in this
+process gives the bare bus delivery of the same setpoints beside it.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+from runtime.schema import Keys, SetpointMsg
+from tests.busutil import free_port, neso, peer, session, stop
+
+COLUMNS = ("gateway latency", "samples", "p50 µs", "p99 µs", "max µs", "notes")
+
+
+def _stats(latency_s) -> tuple[str, str, str, str]:
+    us = np.asarray(latency_s) * 1e6
+    if us.size == 0:
+        return "0", "-", "-", "-"
+    p50, p99 = np.percentile(us, [50, 99])
+    return str(us.size), f"{p50:.0f}", f"{p99:.0f}", f"{us.max():.0f}"
+
+
+def measure(rate_hz: float = 50.0, duration_s: float = 20.0) -> dict:
+    """Latencies in seconds: ``vehicle`` (bus → vehicle) and ``bus`` (bus → probe), plus ``sent``/``lost``."""
+    from neso.types import StateMeasurement
+    from sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+
+    hub_ep, mav_port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    home = tempfile.mkdtemp(prefix="neso-bench-home-")
+    old_home = os.environ.get("HOME")
+    os.environ["HOME"] = home  # MAVSDK's cache
+    try:
+        hub = neso("run", "hub", "--listen", hub_ep)
+        gateway = neso("run", "px4_gateway", "--connect", hub_ep, "--mavlink", f"udpin://127.0.0.1:{mav_port}",
+                       "--no-learn-hover")
+    finally:
+        if old_home is not None:
+            os.environ["HOME"] = old_home
+    vehicle = MavlinkVehicle(VehicleConfig(target=f"udpout:127.0.0.1:{mav_port}"), dt_s=1.0 / rate_hz)
+    stop_telemetry = threading.Event()
+
+    def telemetry() -> None:
+        meas = StateMeasurement(0.0, np.zeros(3), np.zeros(3), 0.0, 0.0, 0.0)
+        while not stop_telemetry.wait(0.02):
+            vehicle.control(meas, on_ground=True)
+            vehicle.publish(meas, t_s=0.0)
+
+    threading.Thread(target=telemetry, daemon=True).start()
+    keys = Keys("uav1")
+    stamps: dict[int, float] = {}
+    bus: list[float] = []
+    try:
+        with session(peer(hub_ep)) as s:
+            s.declare_subscriber(keys.topic("setpoint"),
+                                 lambda sample: bus.append(time.monotonic() - SetpointMsg.from_bytes(
+                                     sample.payload.to_bytes()).stamp_s))
+            pub = s.declare_publisher(keys.topic("setpoint"), express=True)
+            deadline = time.monotonic() + 60.0
+            while not any(e["kind"] == "setpoint" for e in list(vehicle.log)):  # gateway connected and streaming
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the gateway never streamed a setpoint to the vehicle")
+                pub.put(_setpoint(0, 0.3).to_bytes())
+                time.sleep(0.1)
+            time.sleep(0.5)
+            bus.clear()
+            n = int(duration_s * rate_hz)
+            next_s = time.monotonic()
+            for k in range(1, n + 1):
+                msg = _setpoint(k, 0.2 + (k % 5000) * 1e-4)
+                stamps[k] = msg.stamp_s
+                pub.put(msg.to_bytes())
+                next_s += 1.0 / rate_hz
+                time.sleep(max(0.0, next_s - time.monotonic()))
+            time.sleep(0.5)
+    finally:
+        stop_telemetry.set()
+        stop(gateway)
+        stop(hub)
+        vehicle.close()
+    first: dict[int, float] = {}
+    for e in list(vehicle.log):
+        if e["kind"] == "setpoint":
+            k = int(round((e["thrust"] - 0.2) / 1e-4))
+            if 1 <= k <= len(stamps) and abs(e["thrust"] - (0.2 + k * 1e-4)) < 2e-5 and k not in first:
+                first[k] = e["t"]
+    latency = [first[k] - stamps[k] for k in sorted(first)]
+    return {"vehicle": latency, "bus": bus, "sent": len(stamps), "lost": len(stamps) - len(first)}
+
+
+def _setpoint(k: int, thrust: float) -> SetpointMsg:
+    now = time.monotonic()
+    return SetpointMsg(seq=k, stamp_s=now, state_stamp_s=now, t_s=k * 0.02, roll_rad=0.05, pitch_rad=-0.03,
+                       yaw_rad=0.2, thrust_norm=thrust, thrust_n=9.81 * thrust / 0.5, acc_cmd_enu_mps2=(0.0, 0.0, 0.0),
+                       estimate_source="estimator")
+
+
+def gateway_rows(duration_s: float = 20.0, rate_hz: float = 50.0) -> list[tuple[str, ...]]:
+    r = measure(rate_hz, duration_s)
+    return [
+        (f"setpoint on the bus → SET_ATTITUDE_TARGET at the vehicle, {rate_hz:g} Hz", *_stats(r["vehicle"]),
+         f"{r['lost']} of {r['sent']} never arrived"),
+        (f"  bus alone (same setpoints → a probe subscriber)", *_stats(r["bus"]), "Zenoh delivery, for comparison"),
+    ]

@@ -1,0 +1,421 @@
+"""``px4_gateway``: the bus's attitude setpoints to a PX4 vehicle through MAVSDK-Python 4.x, and back.
+
+The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
+
+- **mapping**: a setpoint (ENU/FLU ZYX Euler, the controller's normalised thrust computed with
+  its nominal hover thrust ``nominal_hover_thrust_norm``) becomes PX4's offboard attitude
+  (NED/FRD Euler, deg) and a normalised thrust rescaled to the vehicle's hover thrust:
+  ``thrust = thrust_norm / nominal_hover · hover_estimate``;
+- **hover thrust**: learned online while flying offboard steadily (height above
+  ``learn_min_height_m``, tilt under 15°, |v_z| under 0.3 m/s): the vertical thrust that held
+  the vehicle, ``thrust · cos(tilt) · g / (g + a_z)``, low-pass filtered with ``hover_tau_s``;
+  ``calibrate_hover`` replaces it by the mean over a few seconds of steady hover;
+- **sanity**: a non-finite setpoint is refused (nothing sent, the last valid one stays);
+  a tilt beyond ``max_tilt_rad`` is scaled back to it; a thrust outside
+  [``thrust_min_norm``, ``thrust_max_norm``] is clamped; each is counted;
+- **stale setpoints**: in offboard, ``stale_hold_s`` without a setpoint while at least
+  ``stale_states`` states arrived unanswered (the controller is gone, not the whole machine
+  stalled), or ``stale_max_s`` without a setpoint whatever the states do → command hold;
+  ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
+  Setpoints coming back (a restarted controller) do not resume offboard by themselves. PX4's own offboard-loss failsafe stays the last line.
+
+The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
+companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
+re-sends the last one at 20 Hz), answers ``arm disarm takeoff land hold offboard_start
+offboard_stop calibrate_hover`` commands with the vehicle's acknowledgement, publishes
+TelemetryMsg at 10 Hz, and forwards the bus state (motion capture) to PX4 as external-vision
+ODOMETRY.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+from neso.frames import attitude_enu_from_ned, attitude_ned_from_enu, quat_ned_from_enu_euler, tilt_rad
+from neso.types import GRAVITY_MPS2
+from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
+
+COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
+
+
+@dataclass(frozen=True)
+class GatewayConfig:
+    """Units in the names; angles in rad. ``forward_sources``: state sources forwarded to PX4 as
+    external vision (``mocap``; ``sim`` too when the simulator stands in for the mocap)."""
+
+    mavlink: str = "udpin://0.0.0.0:14540"
+    connect_timeout_s: float = 30.0
+    nominal_hover_thrust_norm: float = 0.5
+    hover_thrust_norm: float = 0.5
+    learn_hover: bool = True
+    hover_tau_s: float = 5.0
+    learn_min_height_m: float = 0.3
+    max_tilt_rad: float = math.radians(40.0)
+    thrust_min_norm: float = 0.0
+    thrust_max_norm: float = 0.9
+    stale_hold_s: float = 0.3
+    stale_states: int = 15
+    stale_max_s: float = 1.0
+    land_after_s: float = 3.0
+    calibrate_s: float = 3.0
+    telemetry_hz: float = 10.0
+    forward_sources: tuple[str, ...] = ("mocap",)
+
+
+@dataclass(frozen=True, slots=True)
+class Px4Attitude:
+    """What goes to PX4: NED/FRD ZYX Euler in degrees (MAVSDK's ``Offboard.Attitude``) and thrust 0–1."""
+
+    roll_deg: float
+    pitch_deg: float
+    yaw_deg: float
+    thrust_norm: float
+
+
+class GatewayCore:
+    """The pure step object: :meth:`on_setpoint`, :meth:`on_state`, :meth:`check_stale`."""
+
+    def __init__(self, config: GatewayConfig) -> None:
+        self.config = config
+        self.hover_thrust_norm = config.hover_thrust_norm
+        self.counts = {"refused_nonfinite": 0, "clamped_tilt": 0, "clamped_thrust": 0, "sent": 0}
+        self.last_setpoint_s: float | None = None
+        self.last_sent: Px4Attitude | None = None
+        self.failsafe = ""  # "", "hold" or "land"
+        self._failsafe_since_s = 0.0
+        self.states_since_setpoint = 0
+        self._prev_vz: tuple[float, float] | None = None
+        self._acc_z = 0.0
+        self._calibration: list[float] | None = None
+        self._calibration_end_s = 0.0
+        self.events: list[tuple[str, str]] = []
+
+    # -- setpoints ---------------------------------------------------------------------
+    def on_setpoint(self, sp: SetpointMsg, now_s: float) -> Px4Attitude | None:
+        """The attitude to send for ``sp``, or None when it is refused."""
+        roll, pitch, yaw, thrust = sp.roll_rad, sp.pitch_rad, sp.yaw_rad, sp.thrust_norm
+        if not all(math.isfinite(v) for v in (roll, pitch, yaw, thrust)):
+            self.counts["refused_nonfinite"] += 1
+            return None
+        self.last_setpoint_s = now_s
+        self.states_since_setpoint = 0
+        tilt = tilt_rad(roll, pitch)
+        if tilt > self.config.max_tilt_rad:
+            roll, pitch = _scale_tilt(roll, pitch, self.config.max_tilt_rad)
+            self.counts["clamped_tilt"] += 1
+        out = thrust / self.config.nominal_hover_thrust_norm * self.hover_thrust_norm
+        clamped = min(max(out, self.config.thrust_min_norm), self.config.thrust_max_norm)
+        if clamped != out:
+            self.counts["clamped_thrust"] += 1
+        r, p, y = attitude_ned_from_enu(roll, pitch, yaw)
+        self.last_sent = Px4Attitude(math.degrees(r), math.degrees(p), math.degrees(y), clamped)
+        self.counts["sent"] += 1
+        return self.last_sent
+
+    def setpoint_age_s(self, now_s: float) -> float:
+        return -1.0 if self.last_setpoint_s is None else max(0.0, now_s - self.last_setpoint_s)
+
+    # -- failsafe ----------------------------------------------------------------------
+    def check_stale(self, now_s: float, *, offboard: bool, armed: bool) -> str:
+        """``hold``/``land`` when the gateway must command it now, else ``""``."""
+        if not armed:
+            self.failsafe = "" if self.failsafe != "land" else self.failsafe
+            return ""
+        age = self.setpoint_age_s(now_s)
+        c = self.config
+        stale = age < 0 or (age > c.stale_hold_s and self.states_since_setpoint >= c.stale_states) or age > c.stale_max_s
+        if self.failsafe == "" and offboard and stale:
+            self.failsafe, self._failsafe_since_s = "hold", now_s
+            self.events.append(("warning", f"no setpoint for {age:.2f} s ({self.states_since_setpoint} states unanswered) "
+                                           "in offboard: commanding hold"))
+            return "hold"
+        if self.failsafe == "hold" and now_s - self._failsafe_since_s >= self.config.land_after_s:
+            self.failsafe, self._failsafe_since_s = "land", now_s
+            self.events.append(("warning", f"{self.config.land_after_s:.1f} s in failsafe hold without an operator: "
+                                           "commanding land"))
+            return "land"
+        return ""
+
+    def clear_failsafe(self) -> None:
+        """An operator took over (offboard start, or an explicit mode command)."""
+        self.failsafe = ""
+
+    # -- hover thrust --------------------------------------------------------------------
+    def on_state(self, state: StateMsg, now_s: float, *, offboard: bool) -> None:
+        """Learn the hover thrust from the state (ENU) and the last thrust sent."""
+        self.states_since_setpoint += 1
+        vz = state.vel_enu_mps[2]
+        if self._prev_vz is not None and state.t_s > self._prev_vz[0]:
+            dt = state.t_s - self._prev_vz[0]
+            a = math.exp(-dt / 0.1)  # 0.1 s low-pass on the differentiated vertical velocity
+            self._acc_z = a * self._acc_z + (1 - a) * (vz - self._prev_vz[1]) / dt
+        self._prev_vz = (state.t_s, vz)
+        sent = self.last_sent
+        steady = (offboard and sent is not None and state.pos_enu_m[2] > self.config.learn_min_height_m
+                  and tilt_rad(state.roll_rad, state.pitch_rad) < math.radians(15.0) and abs(vz) < 0.3
+                  and self.setpoint_age_s(now_s) < 0.1)
+        if not steady:
+            return
+        sample = sent.thrust_norm * math.cos(tilt_rad(state.roll_rad, state.pitch_rad)) * GRAVITY_MPS2 / max(
+            GRAVITY_MPS2 + self._acc_z, 1.0)
+        if self._calibration is not None:
+            self._calibration.append(sample)
+            if now_s >= self._calibration_end_s:
+                self._finish_calibration()
+        elif self.config.learn_hover and 0.05 < sample < 0.95:
+            dt = 1.0 / 50.0
+            self.hover_thrust_norm += (sample - self.hover_thrust_norm) * dt / self.config.hover_tau_s
+
+    def start_calibration(self, now_s: float) -> tuple[bool, str]:
+        self._calibration, self._calibration_end_s = [], now_s + self.config.calibrate_s
+        return True, f"calibrating the hover thrust over {self.config.calibrate_s:.1f} s of steady offboard hover"
+
+    def _finish_calibration(self) -> None:
+        samples, self._calibration = self._calibration, None
+        if len(samples) < 10:
+            self.events.append(("warning", f"hover calibration: only {len(samples)} steady samples, kept "
+                                           f"{self.hover_thrust_norm:.3f}"))
+            return
+        self.hover_thrust_norm = min(max(sum(samples) / len(samples), 0.05), 0.95)
+        self.events.append(("info", f"hover thrust calibrated: {self.hover_thrust_norm:.4f} from {len(samples)} samples"))
+
+
+def _scale_tilt(roll: float, pitch: float, max_tilt: float) -> tuple[float, float]:
+    """Roll and pitch scaled by a common factor so the tilt is ``max_tilt`` (bisection; direction kept)."""
+    lo, hi = 0.0, 1.0
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        if tilt_rad(roll * mid, pitch * mid) > max_tilt:
+            hi = mid
+        else:
+            lo = mid
+    return roll * lo, pitch * lo
+
+
+# -- bus adapter ------------------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mavlink", default="udpin://0.0.0.0:14540",
+                        help="MAVSDK connection URL of the vehicle (PX4 SITL: udpin://0.0.0.0:14540; serial:///dev/ttyACM0:57600)")
+    parser.add_argument("--hover-thrust", type=float, default=0.5, help="initial hover thrust estimate (0–1)")
+    parser.add_argument("--nominal-hover-thrust", type=float, default=0.5,
+                        help="the hover thrust the controller's thrust_norm assumes (its vehicle model)")
+    parser.add_argument("--no-learn-hover", action="store_true", help="keep the hover thrust fixed")
+    parser.add_argument("--max-tilt-deg", type=float, default=40.0)
+    parser.add_argument("--thrust-max", type=float, default=0.9)
+    parser.add_argument("--stale-hold", type=float, default=0.3,
+                        help="seconds without setpoints (with --stale-states states unanswered) before hold")
+    parser.add_argument("--stale-states", type=int, default=15, help="unanswered states before hold")
+    parser.add_argument("--stale-max", type=float, default=1.0, help="seconds without setpoints before hold, states or not")
+    parser.add_argument("--land-after", type=float, default=3.0, help="seconds in failsafe hold before land")
+    parser.add_argument("--forward-sources", default="mocap",
+                        help="state sources forwarded to PX4 as external vision (comma-separated; '' none)")
+
+
+def config_from_args(args) -> GatewayConfig:
+    return GatewayConfig(mavlink=args.mavlink, hover_thrust_norm=args.hover_thrust,
+                         nominal_hover_thrust_norm=args.nominal_hover_thrust, learn_hover=not args.no_learn_hover,
+                         max_tilt_rad=math.radians(args.max_tilt_deg), thrust_max_norm=args.thrust_max,
+                         stale_hold_s=args.stale_hold, stale_states=args.stale_states, stale_max_s=args.stale_max,
+                         land_after_s=args.land_after,
+                         forward_sources=tuple(s for s in args.forward_sources.split(",") if s))
+
+
+def run(args, bus) -> int:
+    from runtime.node import Node, run_node
+
+    config = config_from_args(args)
+    node = Node("px4_gateway", vehicle=args.vehicle, bus=bus, config=config)
+    return run_node(node, lambda n: Px4Link(n, config).run())
+
+
+class Px4Link:
+    """The MAVSDK side. Bus handlers only compute and send a setpoint (a non-blocking MAVSDK call)
+    or store; blocking MAVSDK actions run on a worker thread."""
+
+    def __init__(self, node, config: GatewayConfig) -> None:
+        self.node = node
+        self.config = config
+        self.core = GatewayCore(config)
+        self.tele = {"armed": False, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
+                     "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0}
+        self.system = self.action = self.offboard = self.mocap = None
+        self.actions: queue.Queue = queue.Queue()
+
+    # -- life ----------------------------------------------------------------------------
+    def run(self) -> None:
+        node = self.node
+        from mavsdk import ComponentType, Configuration, Mavsdk, log_subscribe
+
+        log_subscribe(lambda level, message, file, line: level < 2 or (node.log(f"mavsdk: {message}") or True))
+        self.mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+        try:
+            result = self.mavsdk.add_any_connection(self.config.mavlink)
+            node.log(f"MAVLink connection {self.config.mavlink}: {result}")
+            node.subscribe("setpoint", self._on_setpoint)
+            node.subscribe("state", self._on_state)
+            node.on_command(self._on_command, unlocked=COMMANDS)
+            node.status_hook = self._status
+            threading.Thread(target=self._telemetry_loop, name="px4-telemetry", daemon=True).start()
+            threading.Thread(target=self._watchdog_loop, name="px4-watchdog", daemon=True).start()
+            self._connect()
+            while not node.stopping:
+                try:
+                    what, done = self.actions.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                done(self._do(what))
+        finally:
+            self.system = None
+            self.mavsdk.destroy()
+
+    def _connect(self) -> None:
+        from mavsdk.plugins.action import Action
+        from mavsdk.plugins.mocap import Mocap
+        from mavsdk.plugins.offboard import Offboard
+        from mavsdk.plugins.telemetry import Telemetry
+
+        deadline = time.monotonic() + self.config.connect_timeout_s
+        system = None
+        while system is None and not self.node.stopping:
+            system = self.mavsdk.first_autopilot(timeout_s=0.5)
+            if system is None and time.monotonic() > deadline:
+                self.node.event("warning", f"no autopilot on {self.config.mavlink} after "
+                                           f"{self.config.connect_timeout_s:.0f} s; still waiting")
+                deadline = math.inf
+        if system is None:
+            return
+        tele = Telemetry(system)
+        self.action, self.offboard, self.mocap = Action(system), Offboard(system), Mocap(system)
+        t = self.tele
+        tele.subscribe_armed(lambda v, _: t.__setitem__("armed", bool(v)))
+        tele.subscribe_in_air(lambda v, _: t.__setitem__("in_air", bool(v)))
+        tele.subscribe_flight_mode(lambda v, _: t.__setitem__("mode", v.name))
+        tele.subscribe_attitude_euler(lambda v, _: t.__setitem__("att", (v.roll_deg, v.pitch_deg, v.yaw_deg)))
+        tele.subscribe_position_velocity_ned(lambda v, _: t.update(
+            pos_ned=(v.position.north_m, v.position.east_m, v.position.down_m),
+            vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
+        tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
+        self.telemetry = tele
+        self.system = system
+        self.node.event("info", f"connected to autopilot system {system.get_system_id()} on {self.config.mavlink}")
+
+    # -- bus inputs (under the node lock; never block) ----------------------------------------
+    def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
+        att = self.core.on_setpoint(msg, received_s)
+        if att is not None and self.offboard is not None:
+            from mavsdk.plugins.offboard import Attitude
+
+            self.offboard.set_attitude(Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm))
+            self.node.stats.output(time.monotonic() - received_s)
+        self._drain_events()
+
+    def _on_state(self, msg: StateMsg, received_s: float) -> None:
+        self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
+        if msg.source in self.config.forward_sources and self.mocap is not None:
+            self._forward_pose(msg)
+        self._drain_events()
+
+    def _forward_pose(self, msg: StateMsg) -> None:
+        from mavsdk.plugins.mocap import (AngularVelocityBody, Covariance, Odometry, PositionBody, Quaternion,
+                                          SpeedBody)
+
+        x, y, z = msg.pos_enu_m
+        vx, vy, vz = msg.vel_enu_mps
+        w, qx, qy, qz = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
+        nan = Covariance([math.nan])
+        self.mocap.set_odometry(Odometry(
+            time_usec=0, frame_id=Odometry.MavFrame.MOCAP_NED, position_body=PositionBody(y, x, -z),
+            q=Quaternion(w, qx, qy, qz), speed_body=SpeedBody(vy, vx, -vz),  # NED velocity, as PX4's EV accepts
+            angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan), pose_covariance=nan,
+            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.MOCAP, quality_percent=100))
+
+    def _on_command(self, name: str, args: dict) -> tuple[bool, str]:
+        """Runs without the node lock: waits (up to 5 s) for the worker to get the vehicle's answer."""
+        if name not in COMMANDS:
+            return False, f"unknown command {name!r}; choose one of {list(COMMANDS)}"
+        if name == "calibrate_hover":
+            with self.node.lock:
+                return self.core.start_calibration(time.monotonic())
+        if self.system is None:
+            return False, f"no vehicle connected on {self.config.mavlink}"
+        done = threading.Event()
+        answer: list = []
+        self.actions.put((name, lambda result: (answer.append(result), done.set())))
+        if not done.wait(5.0):
+            return False, f"{name}: no answer from the vehicle within 5 s"
+        return answer[0]
+
+    # -- the worker (blocking MAVSDK calls) ----------------------------------------------------
+    def _do(self, name: str) -> tuple[bool, str]:
+        try:
+            if name == "offboard_start":
+                with self.node.lock:
+                    age = self.core.setpoint_age_s(time.monotonic())
+                if age < 0 or age > 0.2:
+                    return False, ("refused: no setpoint streamed yet" if age < 0 else
+                                   f"refused: the last setpoint is {age:.2f} s old (stream setpoints first)")
+                self.offboard.start()
+                with self.node.lock:
+                    self.core.clear_failsafe()
+            elif name == "offboard_stop":
+                self.offboard.stop()
+            else:
+                getattr(self.action, name)()
+            return True, f"{name}: accepted by the vehicle"
+        except Exception as exc:  # MAVSDK raises ActionError/OffboardError with the vehicle's result
+            return False, f"{name}: {type(exc).__name__}: {exc}"
+
+    # -- loops ---------------------------------------------------------------------------
+    def _watchdog_loop(self) -> None:
+        while not self.node.wait(0.02):
+            with self.node.lock:
+                action = self.core.check_stale(time.monotonic(), offboard=self.tele["mode"] == "OFFBOARD",
+                                               armed=self.tele["armed"])
+                self._drain_events()
+            if action and self.system is not None:
+                self.actions.put((action, lambda result, a=action: self.node.event(
+                    "warning" if result[0] else "error", f"failsafe {a}: {result[1]}")))
+
+    def _telemetry_loop(self) -> None:
+        put = self.node.publisher("telemetry")
+        last_problem = ""
+        while not self.node.wait(1.0 / self.config.telemetry_hz):
+            try:
+                put(self._telemetry())
+            except Exception as exc:  # e.g. a value MAVSDK reported as NaN before its first message
+                if str(exc) != last_problem:
+                    last_problem = str(exc)
+                    self.node.log(f"telemetry not published: {type(exc).__name__}: {exc}")
+
+    def _telemetry(self) -> TelemetryMsg:
+        """The vehicle's report (converted to ENU/FLU) plus the gateway's own state; validated."""
+        t = self.tele
+        roll, pitch, yaw = attitude_enu_from_ned(*(math.radians(a) for a in t["att"]))
+        n, e, d = t["pos_ned"]
+        vn, ve, vd = t["vel_ned"]
+        with self.node.lock:
+            hover, failsafe = self.core.hover_thrust_norm, self.core.failsafe
+            age = self.core.setpoint_age_s(time.monotonic())
+        volts = t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0
+        remaining = t["battery"] if math.isfinite(t["battery"]) else -1.0
+        return TelemetryMsg.validate(
+            stamp_s=time.monotonic(), connected=self.system is not None and self.system.is_connected(),
+            armed=t["armed"], in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
+            yaw_rad=yaw, pos_enu_m=[e, n, -d], vel_enu_mps=[ve, vn, -vd], battery_v=min(max(volts, 0.0), 100.0),
+            battery_remaining=min(max(remaining, -1.0), 1.0), hover_thrust_norm=min(max(hover, 0.0), 1.0),
+            setpoint_age_s=age, failsafe=failsafe)
+
+    def _drain_events(self) -> None:
+        while self.core.events:
+            self.node.event(*self.core.events.pop(0))
+
+    def _status(self) -> str:
+        c = self.core.counts
+        return (f"{'connected' if self.system is not None else 'waiting for the vehicle'}, mode {self.tele['mode']}, "
+                f"armed {self.tele['armed']}, hover {self.core.hover_thrust_norm:.3f}, sent {c['sent']}, "
+                f"refused {c['refused_nonfinite']}, clamped tilt {c['clamped_tilt']} thrust {c['clamped_thrust']}"
+                + (f", FAILSAFE {self.core.failsafe}" if self.core.failsafe else ""))

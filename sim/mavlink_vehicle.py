@@ -1,0 +1,332 @@
+"""The simulator presented as a PX4 quadrotor on a MAVLink UDP endpoint (pymavlink, MAVLink 2).
+
+What a ground station (MAVSDK) sees: a 1 Hz HEARTBEAT as ``MAV_TYPE_QUADROTOR`` /
+``MAV_AUTOPILOT_PX4`` with PX4's mode encoding (``custom_mode = main << 16 | sub << 24``,
+``base_mode`` custom-mode-enabled plus the armed flag); COMMAND_ACK for every COMMAND_LONG and
+COMMAND_INT (accepted: arm/disarm 400, set mode 176, take-off 22, land 21, message requests; refused
+as unsupported: anything else); ``SET_ATTITUDE_TARGET`` applied to the physics while in offboard;
+ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY at the control rate and
+GLOBAL_POSITION_INT, HOME_POSITION, SYS_STATUS, BATTERY_STATUS, EXTENDED_SYS_STATE slower.
+
+Its own flight modes are deliberately simple stand-ins for PX4's (a PD position loop on the
+truth, with the true hover thrust, through the same attitude/thrust interface the offboard
+setpoints use): **hold** (AUTO.LOITER) keeps the position where it was entered; **take-off**
+(AUTO.TAKEOFF) climbs 0.5 m/s to ``takeoff_height_m`` above the ground, then holds; **land**
+(AUTO.LAND) descends at 0.5 m/s and disarms 1 s after touching down (PX4's auto-disarm);
+**offboard** applies the newest SET_ATTITUDE_TARGET, and if none has come for
+``offboard_loss_s`` (PX4's COM_OF_LOSS_T, default 1 s) it switches to hold by itself (the
+last line of defence behind the gateway's own failsafe). Disarmed: motors off.
+
+Everything received is logged (``log``, and as JSON lines to ``log_path`` if given) with its
+``time.monotonic()`` arrival stamp, so tests can check what actually reached the vehicle.
+Frames: MAVLink attitudes are NED/FRD; the simulator is ENU/FLU (converted here).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass
+
+os.environ.setdefault("MAVLINK20", "1")  # ODOMETRY and MAVSDK's messages need MAVLink 2
+
+import numpy as np  # noqa: E402
+from pymavlink import mavutil  # noqa: E402
+
+from neso.control import ControlConfig, PositionController  # noqa: E402
+from neso.frames import attitude_enu_from_ned, quat_ned_from_enu_euler, quat_to_euler_ned  # noqa: E402
+from neso.types import AttitudeSetpoint, Reference, StateMeasurement, VehicleModel  # noqa: E402
+
+mavlink = mavutil.mavlink
+
+# PX4 main / sub modes (px4_custom_mode.h)
+MAIN_MANUAL, MAIN_POSCTL, MAIN_AUTO, MAIN_OFFBOARD = 1, 3, 4, 6
+SUB_READY, SUB_TAKEOFF, SUB_LOITER, SUB_LAND = 1, 2, 3, 6
+MODE_NAMES = {(MAIN_MANUAL, 0): "manual", (MAIN_POSCTL, 0): "posctl", (MAIN_AUTO, SUB_READY): "ready",
+              (MAIN_AUTO, SUB_TAKEOFF): "takeoff", (MAIN_AUTO, SUB_LOITER): "hold", (MAIN_AUTO, SUB_LAND): "land",
+              (MAIN_OFFBOARD, 0): "offboard"}
+ACCEPTED_COMMANDS = {
+    mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_NAV_TAKEOFF,
+    mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_CMD_REQUEST_MESSAGE,
+    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+}
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """``target``: where the ground station listens (pymavlink ``udpout:host:port``).
+    ``hover_thrust_norm``: the vehicle's own (true) hover thrust, used by its internal modes."""
+
+    target: str = "udpout:127.0.0.1:14540"
+    system_id: int = 1
+    hover_thrust_norm: float = 0.525
+    takeoff_height_m: float = 1.0
+    climb_speed_mps: float = 0.5
+    land_speed_mps: float = 0.5
+    offboard_loss_s: float = 1.0
+    disarm_after_landing_s: float = 1.0
+    battery_full_v: float = 16.8
+    battery_empty_v: float = 13.2
+    battery_minutes: float = 10.0
+    log_path: str = ""
+
+
+class MavlinkVehicle:
+    """One simulated PX4. The simulator loop calls :meth:`control` each period (what to apply) and
+    :meth:`publish` after stepping (telemetry); a receiver thread handles what arrives."""
+
+    def __init__(self, config: VehicleConfig, *, dt_s: float) -> None:
+        self.config = config
+        self.dt_s = dt_s
+        self.conn = mavutil.mavlink_connection(config.target, source_system=config.system_id,
+                                               source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, dialect="common")
+        self.lock = threading.Lock()
+        self.send_lock = threading.Lock()
+        self.armed = False
+        self.main_mode, self.sub_mode = MAIN_AUTO, SUB_READY
+        self.offboard_setpoint: AttitudeSetpoint | None = None
+        self.offboard_setpoint_s = -math.inf
+        self.log: list[dict] = []
+        self._log_file = open(config.log_path, "a", buffering=1) if config.log_path else None
+        ctrl = ControlConfig(dt_s=dt_s, vehicle=VehicleModel(hover_thrust_norm=config.hover_thrust_norm))
+        self._position = PositionController(ctrl)
+        self._target: np.ndarray | None = None
+        self._touchdown_s: float | None = None
+        self._home_enu_m: np.ndarray | None = None
+        self._last_meas: StateMeasurement | None = None
+        self._on_ground = True
+        self._t0 = time.monotonic()
+        self._next_slow_s = 0.0
+        self._next_hb_s = 0.0
+        self._stop = threading.Event()
+        self._rx = threading.Thread(target=self._receive, name="mavlink-vehicle-rx", daemon=True)
+        self._rx.start()
+
+    # -- what arrives ------------------------------------------------------------------------
+    def _record(self, entry: dict) -> None:
+        self.log.append(entry)
+        if len(self.log) > 200_000:
+            del self.log[:100_000]
+        if self._log_file is not None:
+            self._log_file.write(json.dumps(entry) + "\n")
+
+    def _receive(self) -> None:
+        while not self._stop.is_set():
+            try:
+                msg = self.conn.recv_match(blocking=True, timeout=0.1)
+            except (OSError, ValueError):
+                if self._stop.is_set():
+                    return
+                continue
+            if msg is None:
+                continue
+            now = time.monotonic()
+            kind = msg.get_type()
+            if kind == "SET_ATTITUDE_TARGET":
+                self._on_attitude_target(msg, now)
+            elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+                self._on_command(msg, now)
+            elif kind == "ODOMETRY":
+                self._record({"t": now, "kind": "odometry", "xyz_ned": [msg.x, msg.y, msg.z], "q": list(msg.q),
+                              "frame": msg.frame_id})
+            elif kind == "PARAM_REQUEST_LIST":
+                self._send(lambda m: m.param_value_send(b"MIS_TAKEOFF_ALT", self.config.takeoff_height_m,
+                                                        mavlink.MAV_PARAM_TYPE_REAL32, 1, 0))
+
+    def _on_attitude_target(self, msg, now: float) -> None:
+        q = tuple(float(v) for v in msg.q)
+        thrust = float(msg.thrust)
+        entry = {"t": now, "kind": "setpoint", "q": q, "thrust": thrust, "mask": int(msg.type_mask)}
+        finite = all(math.isfinite(v) for v in (*q, thrust)) and abs(math.sqrt(sum(v * v for v in q)) - 1) < 1e-3
+        if finite and 0.0 <= thrust <= 1.0:
+            roll_ned, pitch_ned, yaw_ned = quat_to_euler_ned(q)
+            roll, pitch, yaw = attitude_enu_from_ned(roll_ned, pitch_ned, yaw_ned)
+            entry.update(roll_ned_rad=roll_ned, pitch_ned_rad=pitch_ned, yaw_ned_rad=yaw_ned)
+            with self.lock:
+                self.offboard_setpoint = AttitudeSetpoint(roll, pitch, yaw, thrust, 0.0)
+                self.offboard_setpoint_s = now
+        else:
+            entry["rejected"] = True  # PX4 ignores such a setpoint; the log shows it arrived
+        self._record(entry)
+
+    def _on_command(self, msg, now: float) -> None:
+        cmd = int(msg.command)
+        params = [float(getattr(msg, f"param{i}")) for i in range(1, 5)]
+        if msg.get_type() == "COMMAND_LONG":
+            params += [float(msg.param5), float(msg.param6), float(msg.param7)]
+        result = mavlink.MAV_RESULT_ACCEPTED if cmd in ACCEPTED_COMMANDS else mavlink.MAV_RESULT_UNSUPPORTED
+        with self.lock:
+            if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+                if params[0] >= 0.5:
+                    self.armed, self._touchdown_s = True, None
+                elif self._on_ground or params[1] == 21196:  # 21196: forced disarm
+                    self.armed = False
+                else:
+                    result = mavlink.MAV_RESULT_DENIED  # PX4 refuses to disarm in the air
+            elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
+                main, sub = int(params[1]), int(params[2])
+                if main == MAIN_OFFBOARD and (self.offboard_setpoint is None or now - self.offboard_setpoint_s > 0.5):
+                    result = mavlink.MAV_RESULT_DENIED  # PX4 refuses offboard without a setpoint stream
+                else:
+                    self._set_mode(main, sub if main == MAIN_AUTO else 0)
+            elif cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
+                if self.armed:
+                    self._set_mode(MAIN_AUTO, SUB_TAKEOFF)
+                else:
+                    result = mavlink.MAV_RESULT_DENIED
+            elif cmd == mavlink.MAV_CMD_NAV_LAND:
+                self._set_mode(MAIN_AUTO, SUB_LAND)
+            state = (self.armed, self.mode_name)
+        self._record({"t": now, "kind": "command", "command": cmd, "params": params, "result": int(result),
+                      "armed": state[0], "mode": state[1]})
+        self._send(lambda m: m.command_ack_send(cmd, result, 100, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            self._send_autopilot_version()
+        if cmd == mavlink.MAV_CMD_DO_SET_MODE or cmd in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
+                                                         mavlink.MAV_CMD_COMPONENT_ARM_DISARM):
+            self._heartbeat()  # report the new mode at once, as PX4 does
+
+    def _set_mode(self, main: int, sub: int) -> None:
+        """Under ``self.lock``."""
+        if (main, sub) != (self.main_mode, self.sub_mode):
+            self._target = None  # hold/take-off/land pick their target from where the vehicle is
+            self._touchdown_s = None
+        self.main_mode, self.sub_mode = main, sub
+
+    @property
+    def mode_name(self) -> str:
+        return MODE_NAMES.get((self.main_mode, self.sub_mode), f"{self.main_mode}/{self.sub_mode}")
+
+    # -- what the simulator applies ----------------------------------------------------------
+    def control(self, meas: StateMeasurement, *, on_ground: bool) -> AttitudeSetpoint:
+        """The attitude/thrust command for the next period given the vehicle's state."""
+        now = time.monotonic()
+        self._last_meas = meas
+        self._on_ground = on_ground
+        if self._home_enu_m is None:
+            self._home_enu_m = np.array(meas.pos_enu_m, dtype=float)
+        with self.lock:
+            if not self.armed:
+                self._target = None
+                return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
+            if self.main_mode == MAIN_OFFBOARD:
+                if now - self.offboard_setpoint_s <= self.config.offboard_loss_s:
+                    return self.offboard_setpoint
+                self._record({"t": now, "kind": "failsafe", "what": "offboard loss: hold"})
+                self._set_mode(MAIN_AUTO, SUB_LOITER)
+            if self._target is None:
+                self._target = np.array(meas.pos_enu_m, dtype=float)
+                self._position.reset(np.array([0.0, 0.0, self._position.config.vehicle.hover_thrust_n]))
+            target, vel = self._target.copy(), np.zeros(3)
+            if self.sub_mode == SUB_TAKEOFF:
+                top = self._home_enu_m[2] + self.config.takeoff_height_m
+                target[2] = min(top, self._target[2] + self.config.climb_speed_mps * self.dt_s)
+                vel[2] = self.config.climb_speed_mps if target[2] < top else 0.0
+                self._target = target
+                if meas.pos_enu_m[2] > top - 0.05:
+                    self._set_mode(MAIN_AUTO, SUB_LOITER)
+                    self._target = target
+            elif self.sub_mode == SUB_LAND:
+                target[2] = self._target[2] - self.config.land_speed_mps * self.dt_s
+                vel[2] = -self.config.land_speed_mps
+                self._target = target
+                if on_ground:
+                    self._touchdown_s = self._touchdown_s or now
+                    if now - self._touchdown_s >= self.config.disarm_after_landing_s:
+                        self.armed, self._touchdown_s = False, None
+                        self._set_mode(MAIN_AUTO, SUB_READY)  # the next arming starts from "ready", not from "land"
+                        self._record({"t": now, "kind": "disarmed", "why": "landed"})
+                    return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
+            out = self._position.step(meas, Reference(pos_enu_m=target, vel_enu_mps=vel, yaw_rad=meas.yaw_rad),
+                                      np.zeros(3))
+            return out.setpoint
+
+    # -- what goes out -------------------------------------------------------------------------
+    def _send(self, fn) -> None:
+        with self.send_lock:
+            try:
+                fn(self.conn.mav)
+            except OSError:
+                pass  # nobody listening yet (connection refused on loopback): next time
+
+    def _heartbeat(self) -> None:
+        with self.lock:
+            base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+            custom = (self.main_mode << 16) | (self.sub_mode << 24)
+            status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
+        self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, status))
+
+    def _send_autopilot_version(self) -> None:
+        caps = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+                | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT)
+        self._send(lambda m: m.autopilot_version_send(caps, 0, 0, 0, 0, bytes(8), bytes(8), bytes(8), 0, 0, 1))
+
+    def publish(self, meas: StateMeasurement, *, t_s: float, body_rates_frd_rps=(0.0, 0.0, 0.0)) -> None:
+        """Telemetry after a simulator step: fast messages every call, slow ones at 1–10 Hz."""
+        now = time.monotonic()
+        boot_ms = int((now - self._t0) * 1e3) & 0xFFFFFFFF
+        pos_ned = (float(meas.pos_enu_m[1]), float(meas.pos_enu_m[0]), -float(meas.pos_enu_m[2]))
+        vel_ned = (float(meas.vel_enu_mps[1]), float(meas.vel_enu_mps[0]), -float(meas.vel_enu_mps[2]))
+        q = quat_ned_from_enu_euler(meas.roll_rad, meas.pitch_rad, meas.yaw_rad)
+        roll_ned, pitch_ned, yaw_ned = quat_to_euler_ned(q)
+        p, qr, r = (float(v) for v in body_rates_frd_rps)
+        self._send(lambda m: m.attitude_send(boot_ms, roll_ned, pitch_ned, yaw_ned, p, qr, r))
+        self._send(lambda m: m.attitude_quaternion_send(boot_ms, *q, p, qr, r))
+        self._send(lambda m: m.local_position_ned_send(boot_ms, *pos_ned, *vel_ned))
+        nan21 = [math.nan] + [0.0] * 20
+        self._send(lambda m: m.odometry_send(int((now - self._t0) * 1e6), mavlink.MAV_FRAME_LOCAL_NED,
+                                             mavlink.MAV_FRAME_BODY_FRD, *pos_ned, list(q), *_frd_velocity(q, vel_ned),
+                                             p, qr, r, nan21, nan21, 0, mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100))
+        if now >= self._next_hb_s:
+            self._next_hb_s = now + 1.0
+            self._heartbeat()
+        if now >= self._next_slow_s:
+            self._next_slow_s = now + 0.1
+            self._send_slow(pos_ned, vel_ned, yaw_ned, boot_ms)
+
+    def _send_slow(self, pos_ned, vel_ned, yaw_ned: float, boot_ms: int) -> None:
+        lat0, lon0, alt0 = 47.397742, 8.545594, 488.0  # PX4 SITL's default origin (Zurich)
+        lat = lat0 + math.degrees(pos_ned[0] / 6378137.0)
+        lon = lon0 + math.degrees(pos_ned[1] / (6378137.0 * math.cos(math.radians(lat0))))
+        hdg = int(math.degrees(yaw_ned) % 360 * 100)
+        self._send(lambda m: m.global_position_int_send(boot_ms, int(lat * 1e7), int(lon * 1e7),
+                                                        int((alt0 - pos_ned[2]) * 1e3), int(-pos_ned[2] * 1e3),
+                                                        int(vel_ned[0] * 100), int(vel_ned[1] * 100),
+                                                        int(vel_ned[2] * 100), hdg))
+        self._send(lambda m: m.home_position_send(int(lat0 * 1e7), int(lon0 * 1e7), int(alt0 * 1e3), 0.0, 0.0, 0.0,
+                                                  [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0))
+        volts, remaining = self.battery(time.monotonic() - self._t0)
+        self._send(lambda m: m.sys_status_send(0, 0, 0, 500, int(volts * 1e3), -1, int(remaining * 100), 0, 0, 0, 0,
+                                               0, 0))
+        cells = [int(volts / 4 * 1e3)] * 4 + [65535] * 6
+        self._send(lambda m: m.battery_status_send(0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO,
+                                                   2500, cells, -1, -1, -1, int(remaining * 100)))
+        with self.lock:
+            armed, on_ground = self.armed, self._on_ground
+        landed = (mavlink.MAV_LANDED_STATE_ON_GROUND if (on_ground or not armed) else mavlink.MAV_LANDED_STATE_IN_AIR)
+        self._send(lambda m: m.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED, landed))
+
+    def battery(self, elapsed_s: float) -> tuple[float, float]:
+        """(voltage V, remaining 0–1): linear over ``battery_minutes`` (a stand-in for a LiPo's sag)."""
+        c = self.config
+        remaining = max(0.0, 1.0 - elapsed_s / 60.0 / c.battery_minutes)
+        return c.battery_empty_v + (c.battery_full_v - c.battery_empty_v) * remaining, remaining
+
+    def close(self) -> None:
+        self._stop.set()
+        self._rx.join(timeout=1.0)
+        self.conn.close()
+        if self._log_file is not None:
+            self._log_file.close()
+
+
+def _frd_velocity(q_wxyz, vel_ned) -> tuple[float, float, float]:
+    """The NED velocity expressed in the body FRD frame (ODOMETRY's child frame)."""
+    w, x, y, z = q_wxyz
+    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    v = r.T @ np.asarray(vel_ned)
+    return float(v[0]), float(v[1]), float(v[2])

@@ -1,0 +1,244 @@
+"""The PX4 gateway end to end: `neso up --vehicle mavlink` (the sim as a MAVLink PX4, real MAVSDK over
+UDP loopback, real Zenoh, real processes), checked against what the simulated PX4 logged as received.
+
+One flight, tests in file order: bad setpoints while disarmed (sanity), then arm → offboard →
+take-off → hover → landing test → land (hover error compared with the direct path flown the same
+way), telemetry on the bus, then a second take-off and `kill -9` of the controller (failsafe
+hold within 0.5 s, then land).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from runtime.client import command
+from runtime.schema import SetpointMsg, TelemetryMsg
+from tests.busutil import Collector, children_of, free_port, neso, peer, session, stop
+
+TOPICS = ("state", "truth", "estimate", "setpoint", "reference", "telemetry")
+HOLD = (4.0, 3.0)  # PX4 main/sub mode of AUTO.LOITER in DO_SET_MODE param2/param3
+MAX_TILT_DEG = 40.0
+THRUST_MAX = 0.9
+
+
+def _up(*extra: str, home: str):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    old = os.environ.get("HOME")
+    os.environ["HOME"] = home  # MAVSDK writes its cache under $HOME/.cache/mavsdk
+    try:
+        proc = neso("up", "--hub", endpoint, *extra)
+    finally:
+        if old is not None:
+            os.environ["HOME"] = old
+    return endpoint, proc
+
+
+class Flight:
+    def __init__(self, tmp, *extra: str):
+        self.log_path = str(tmp / "vehicle.jsonl")
+        self.endpoint, self.proc = _up(*extra, "--mavlink-log", self.log_path, home=str(tmp))
+        self.output: list[str] = []
+        threading.Thread(target=self._pump, daemon=True).start()
+        self._cm = session(peer(self.endpoint))
+        self.s = self._cm.__enter__()
+        self.probe = Collector(self.s, topics=TOPICS)
+
+    def _pump(self):
+        for line in self.proc.stdout:
+            self.output.append(line)
+
+    def cmd(self, service: str, name: str, **args):
+        reply = command(self.s, self.probe.keys, service, name, args, timeout_s=8.0)
+        return reply
+
+    def vehicle_log(self) -> list[dict]:
+        with open(self.log_path) as f:
+            return [json.loads(line) for line in f if line.strip()]
+
+    def commands(self, code: int | None = None) -> list[dict]:
+        return [e for e in self.vehicle_log() if e["kind"] == "command" and (code is None or e["command"] == code)]
+
+    def pid_of(self, role: str) -> int:
+        for pid in children_of(self.proc.pid):
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = f.read().split(b"\0")
+            if b"run" in argv and argv[argv.index(b"run") + 1] == role.encode():
+                return pid
+        raise AssertionError(f"no {role} process under the launcher")
+
+    def truth_z(self) -> float:
+        return self.probe.get("truth")[-1].pos_enu_m[2]
+
+    def close(self):
+        self._cm.__exit__(None, None, None)
+        out = stop(self.proc, timeout_s=10)
+        return out
+
+
+def hover_error_m(flight: Flight, first_hover_seq: int, skip: int = 100, n: int = 150) -> float:
+    """RMS ‖truth − reference‖ over samples ``skip`` … ``skip + n`` of the hover segment (samples the
+    loaded machine dropped a reference for are left out; at least 80 % must be there)."""
+    lo, hi = first_hover_seq + skip, first_hover_seq + skip + n
+    refs = {m.seq: m.pos_enu_m for m in flight.probe.get("reference") if m.segment == "hover" and lo <= m.seq < hi}
+    truth = {m.seq: m.pos_enu_m for m in flight.probe.get("truth") if lo <= m.seq < hi}
+    seqs = sorted(set(refs) & set(truth))
+    assert len(seqs) >= 0.8 * n, f"only {len(seqs)} of {n} hover samples"
+    return float(np.sqrt(np.mean([np.sum(np.subtract(truth[k], refs[k]) ** 2) for k in seqs])))
+
+
+def fly_takeoff_and_hover(flight: Flight, hover_s: float = 6.5) -> float:
+    """Wait for the take-off to end and hover; the hover error (m)."""
+    start = flight.probe.get("state")[-1].seq
+    first = flight.probe.wait_for("reference", lambda m: m.segment == "hover" and m.seq > start, 20.0)
+    flight.probe.wait_for("reference", lambda m: m.seq > first.seq + int(hover_s * 50), hover_s + 10)
+    err = hover_error_m(flight, first.seq, n=int(hover_s * 50) - 100)
+    z = [round(m.pos_enu_m[2], 3) for m in flight.probe.get("truth") if m.seq >= start][::25]
+    if os.environ.get("NESO_DIAG"):  # a developer's aid: everything the probe saw, for a look afterwards
+        with open(f"{os.environ['NESO_DIAG']}.{os.getpid()}.{time.monotonic():.0f}.json", "w") as f:
+            json.dump({t: [dict((k, getattr(m, k)) for k in m.__dataclass_fields__) for m in flight.probe.get(t)]
+                       for t in TOPICS} | {"output": flight.output}, f)
+    assert err < 0.05, f"hover error {err * 100:.1f} cm; truth z every 0.5 s from the command: {z}"
+    return err
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    f = Flight(tmp_path_factory.mktemp("mavlink"), "--vehicle", "mavlink", "--start", "ground", "--mission", "idle",
+               "--mavlink-port", str(free_port()))
+    try:
+        f.probe.wait_for("telemetry", lambda m: m.connected, 40.0)
+        yield f
+    finally:
+        out = f.close()
+        print(out[-3000:])
+
+
+def test_bad_setpoints_never_reach_the_vehicle(flight):
+    """NaN (rejected by the schema), over-tilt (scaled to 40°) and out-of-range thrust (clamped to
+    0.9) published on the bus while disarmed: the gateway still streams, the vehicle logs all."""
+    import zenoh
+
+    keys = flight.probe.keys
+    pub = flight.s.declare_publisher(keys.topic("setpoint"), congestion_control=zenoh.CongestionControl.BLOCK)
+    base = dict(seq=0, stamp_s=time.monotonic(), state_stamp_s=time.monotonic(), t_s=0.0, roll_rad=0.0,
+                pitch_rad=0.0, yaw_rad=0.0, thrust_norm=0.3, thrust_n=5.0, acc_cmd_enu_mps2=(0.0, 0.0, 0.0),
+                estimate_source="estimator")
+    started = time.monotonic()
+    for i in range(20):
+        nan = msgpack.unpackb(SetpointMsg(**base).to_bytes())
+        nan["roll_rad"] = float("nan")
+        pub.put(msgpack.packb(nan))
+        pub.put(SetpointMsg(**{**base, "roll_rad": 1.2, "pitch_rad": -0.9, "yaw_rad": 2.0}).to_bytes())  # 63° tilt
+        pub.put(SetpointMsg(**{**base, "thrust_norm": 1.0, "yaw_rad": 2.5}).to_bytes())  # → 1.0 after scaling
+        time.sleep(0.02)
+    pub.undeclare()
+    time.sleep(1.0)
+    arrived = [e for e in flight.vehicle_log() if e["kind"] == "setpoint" and e["t"] >= started]
+    assert arrived, "the gateway streamed nothing"
+    for e in arrived:
+        assert all(math.isfinite(v) for v in (*e["q"], e["thrust"])), e
+        tilt = math.degrees(math.acos(min(1.0, math.cos(e["roll_ned_rad"]) * math.cos(e["pitch_ned_rad"]))))
+        assert tilt <= MAX_TILT_DEG + 0.01, e
+        assert 0.0 <= e["thrust"] <= THRUST_MAX + 1e-6, e
+    # the injected ones did arrive, clamped (so the checks above saw them): yaw ENU 2.0 → NED π/2 − 2.0
+    tilted = [e for e in arrived if abs(e["yaw_ned_rad"] - (math.pi / 2 - 2.0)) < 1e-3]
+    strong = [e for e in arrived if abs(e["yaw_ned_rad"] - (math.pi / 2 - 2.5)) < 1e-3]
+    assert tilted and strong, "injected setpoints did not reach the vehicle at all"
+    assert max(math.degrees(math.acos(math.cos(e["roll_ned_rad"]) * math.cos(e["pitch_ned_rad"]))) for e in tilted) \
+        == pytest.approx(MAX_TILT_DEG, abs=0.05)
+    assert max(e["thrust"] for e in strong) == pytest.approx(THRUST_MAX, abs=1e-6)
+    # the NaN payloads were rejected at the gateway's input and counted
+    health = flight.probe.keys.health("px4_gateway")
+    reports = []
+    sub = flight.s.declare_subscriber(health, lambda s: reports.append(s.payload.to_bytes()))
+    time.sleep(1.3)
+    sub.undeclare()
+    from runtime.schema import HealthMsg
+
+    assert HealthMsg.from_bytes(reports[-1]).rejected["setpoint"] >= 20
+
+
+def test_commands_are_answered_with_the_vehicles_acknowledgement(flight):
+    refused = flight.cmd("px4_gateway", "takeoff")  # PX4 refuses a take-off while disarmed
+    assert not refused.ok and "DENIED" in refused.message, refused
+    assert flight.commands(22)[-1]["result"] == 2  # MAV_RESULT_DENIED, as sent
+    assert not flight.cmd("px4_gateway", "fly_to_the_moon").ok
+
+
+def test_arm_takeoff_hover_landing_test_and_land_through_the_gateway(flight):
+    armed = flight.cmd("px4_gateway", "arm")
+    assert armed.ok, armed.message
+    assert flight.commands(400)[-1]["params"][0] == 1.0
+    started = flight.cmd("px4_gateway", "offboard_start")
+    assert started.ok, started.message
+    assert flight.commands(176)[-1]["params"][1] == 6.0  # offboard main mode
+    assert flight.cmd("controller", "takeoff").ok
+    err = fly_takeoff_and_hover(flight)
+    flight.hover_error_m = err
+    print(f"mavlink hover RMS error {err * 100:.2f} cm")
+
+    tele = flight.probe.wait_for("telemetry", lambda m: m.armed and m.flight_mode == "offboard", 2.0)
+    assert tele.in_air and tele.battery_v > 13.0 and 0.0 < tele.battery_remaining <= 1.0
+    assert abs(tele.pos_enu_m[2] - flight.truth_z()) < 0.1, "PX4's own position estimate reaches the bus"
+    assert flight.cmd("controller", "landing_test").ok
+    end = flight.probe.wait_for("reference", lambda m: m.segment == "hover" and abs(m.pos_enu_m[2] - 0.1) < 1e-6, 30.0)
+    flight.probe.wait_for("truth", lambda m: m.seq > end.seq + 100, 5.0)
+    landing_err = [abs(m.pos_enu_m[2] - 0.1) for m in flight.probe.get("truth") if m.seq > end.seq + 50]
+    assert np.mean(landing_err) < 0.03
+    assert flight.cmd("controller", "land").ok
+    landed = flight.cmd("px4_gateway", "land")
+    assert landed.ok, landed.message
+    assert flight.commands(21), "NAV_LAND reached the vehicle"
+    t0 = time.monotonic()
+    flight.probe.wait_for("telemetry", lambda m: m.stamp_s > t0 and not m.armed, 15.0)
+    assert any(e["kind"] == "disarmed" for e in flight.vehicle_log())
+    assert flight.truth_z() < 0.1
+    odometry = [e for e in flight.vehicle_log() if e["kind"] == "odometry"]
+    assert len(odometry) > 100, "the state reached PX4 as external-vision odometry"
+
+
+def test_controller_killed_mid_hover_the_gateway_holds_within_half_a_second_then_lands(flight):
+    assert flight.cmd("px4_gateway", "arm").ok
+    assert flight.cmd("px4_gateway", "offboard_start").ok
+    assert flight.cmd("controller", "takeoff").ok
+    fly_takeoff_and_hover(flight, hover_s=3.0)
+    killed_at = time.monotonic()
+    os.kill(flight.pid_of("controller"), signal.SIGKILL)
+    try:
+        flight.probe.wait_for("telemetry", lambda m: m.failsafe == "land", 10.0)
+    except AssertionError:
+        raise AssertionError([line for line in flight.output if "px4_gateway |" in line][-20:],
+                             [e for e in flight.commands() if e["t"] >= killed_at]) from None
+    flight.probe.wait_for("telemetry", lambda m: m.stamp_s > killed_at and not m.armed, 15.0)
+    after = [e for e in flight.commands() if e["t"] >= killed_at]
+    holds = [e for e in after if e["command"] == 176 and tuple(e["params"][1:3]) == HOLD]
+    lands = [e for e in after if e["command"] == 21]
+    assert holds, f"no hold reached the vehicle: {after}"
+    delay = holds[0]["t"] - killed_at
+    print(f"hold {delay * 1e3:.0f} ms after the controller's death, land {lands[0]['t'] - killed_at:.2f} s after")
+    assert delay < 0.5
+    assert lands and lands[0]["t"] > holds[0]["t"]
+    assert flight.truth_z() < 0.1, "it landed"
+    assert not [e for e in flight.vehicle_log() if e["kind"] == "failsafe"], "PX4's own failsafe was not needed"
+
+
+def test_hover_error_matches_the_direct_path_within_1_cm(flight, tmp_path):
+    mavlink_err = getattr(flight, "hover_error_m", None)
+    assert mavlink_err is not None, "the mavlink flight did not run"
+    direct = Flight(tmp_path, "--start", "ground", "--mission", "idle")
+    try:
+        direct.probe.wait_for("state", lambda m: m.seq > 100, 30.0)  # on the ground a while, as the mavlink flight
+        assert direct.cmd("controller", "takeoff").ok
+        err = fly_takeoff_and_hover(direct)
+    finally:
+        direct.close()
+    print(f"hover RMS error: direct {err * 100:.2f} cm, mavlink {mavlink_err * 100:.2f} cm")
+    assert abs(mavlink_err - err) < 0.01

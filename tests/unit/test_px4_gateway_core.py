@@ -1,0 +1,126 @@
+"""The PX4 gateway's pure parts: frame conversion, sanity limits, hover-thrust learning, the stale-setpoint failsafe."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from neso.frames import (FLU_FROM_FRD, NED_FROM_ENU, attitude_enu_from_ned, attitude_ned_from_enu, matrix_from_quat,
+                         quat_ned_from_enu_euler, quat_to_euler_ned, tilt_rad)
+from neso.rotations import world_from_body_zyx
+from runtime.schema import SetpointMsg, StateMsg
+from services.px4_gateway import GatewayConfig, GatewayCore
+
+
+def setpoint(roll=0.0, pitch=0.0, yaw=0.0, thrust=0.5) -> SetpointMsg:
+    return SetpointMsg(seq=1, stamp_s=1.0, state_stamp_s=1.0, t_s=0.0, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
+                       thrust_norm=thrust, thrust_n=9.81, acc_cmd_enu_mps2=(0.0, 0.0, 0.0), estimate_source="estimator")
+
+
+@pytest.mark.parametrize("rpy", [(0.1, -0.2, 0.3), (0.0, 0.0, 0.0), (-0.4, 0.3, 2.9), (0.2, 0.1, -1.7)])
+def test_ned_attitude_is_the_same_physical_rotation_and_round_trips(rpy):
+    ned = attitude_ned_from_enu(*rpy)
+    r_enu = world_from_body_zyx(*rpy)
+    r_ned = world_from_body_zyx(*ned)
+    np.testing.assert_allclose(NED_FROM_ENU @ r_enu @ FLU_FROM_FRD, r_ned, atol=1e-12)
+    np.testing.assert_allclose(attitude_enu_from_ned(*ned), rpy, atol=1e-12)
+    np.testing.assert_allclose(matrix_from_quat(quat_ned_from_enu_euler(*rpy)), r_ned, atol=1e-12)
+    np.testing.assert_allclose(quat_to_euler_ned(quat_ned_from_enu_euler(*rpy)), ned, atol=1e-12)
+
+
+def test_small_angles_map_as_px4_users_expect():
+    roll, pitch, yaw = attitude_ned_from_enu(0.1, 0.05, 0.0)  # ENU yaw 0 faces east = NED yaw +90°
+    assert roll == pytest.approx(0.1, abs=1e-3) and pitch == pytest.approx(-0.05, abs=1e-3)
+    assert yaw == pytest.approx(math.pi / 2, abs=1e-3)
+
+
+def test_thrust_is_rescaled_to_the_vehicles_hover_thrust_and_angles_converted():
+    core = GatewayCore(GatewayConfig(hover_thrust_norm=0.6))
+    out = core.on_setpoint(setpoint(roll=0.1, pitch=0.05, yaw=0.0, thrust=0.5), 1.0)
+    assert out.thrust_norm == pytest.approx(0.6)
+    assert (out.roll_deg, out.pitch_deg, out.yaw_deg) == pytest.approx(
+        tuple(math.degrees(a) for a in attitude_ned_from_enu(0.1, 0.05, 0.0)))
+
+
+def test_over_tilt_is_scaled_back_keeping_its_direction_and_thrust_is_clamped():
+    core = GatewayCore(GatewayConfig(max_tilt_rad=math.radians(40.0), thrust_max_norm=0.9))
+    out = core.on_setpoint(setpoint(roll=1.2, pitch=-0.9, thrust=0.95), 1.0)
+    r, p, _ = attitude_enu_from_ned(*(math.radians(a) for a in (out.roll_deg, out.pitch_deg, out.yaw_deg)))
+    assert math.degrees(tilt_rad(r, p)) == pytest.approx(40.0, abs=1e-6)
+    assert r / p == pytest.approx(1.2 / -0.9, rel=1e-9)
+    assert out.thrust_norm == 0.9
+    assert core.counts["clamped_tilt"] == 1 and core.counts["clamped_thrust"] == 1
+
+
+def test_non_finite_setpoint_is_refused_and_counted():
+    core = GatewayCore(GatewayConfig())
+    bad = dataclasses.replace(setpoint(), pitch_rad=math.nan)  # the schema would refuse it on the wire
+    assert core.on_setpoint(bad, 1.0) is None
+    assert core.counts["refused_nonfinite"] == 1 and core.last_sent is None and core.setpoint_age_s(2.0) == -1.0
+
+
+def feed_states(core, t0, t1):
+    for k in range(int(round((t1 - t0) * 50))):
+        core.on_state(state(t0 + k / 50), t0 + k / 50, offboard=True)
+
+
+def test_stale_setpoints_in_offboard_hold_then_land_and_only_in_offboard():
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_states=15, stale_max_s=1.0, land_after_s=3.0))
+    core.on_setpoint(setpoint(), 10.0)
+    feed_states(core, 10.0, 10.2)
+    assert core.check_stale(10.2, offboard=True, armed=True) == ""
+    feed_states(core, 10.2, 10.32)
+    assert core.check_stale(11.0, offboard=False, armed=True) == "", "not in offboard: PX4 flies its own mode"
+    assert core.check_stale(10.32, offboard=True, armed=True) == "hold"
+    assert core.check_stale(11.0, offboard=False, armed=True) == ""  # now in hold
+    core.on_setpoint(setpoint(), 12.0)  # a restarted controller does not cancel the landing
+    assert core.check_stale(13.33, offboard=False, armed=True) == "land"
+    assert core.failsafe == "land" and core.check_stale(20.0, offboard=False, armed=True) == ""
+    core.clear_failsafe()
+    assert core.failsafe == ""
+
+
+def test_a_stall_of_the_whole_machine_is_not_taken_for_a_dead_controller_up_to_stale_max():
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_states=15, stale_max_s=1.0))
+    core.on_setpoint(setpoint(), 10.0)
+    feed_states(core, 10.0, 10.1)  # then nothing at all: the source stalled too
+    assert core.check_stale(10.6, offboard=True, armed=True) == ""
+    assert core.check_stale(11.01, offboard=True, armed=True) == "hold"
+
+
+def test_an_operator_taking_over_cancels_the_failsafe_landing():
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_max_s=0.5, land_after_s=3.0))
+    core.on_setpoint(setpoint(), 10.0)
+    assert core.check_stale(10.6, offboard=True, armed=True) == "hold"
+    core.clear_failsafe()  # offboard_start by an operator
+    core.on_setpoint(setpoint(), 11.0)
+    assert core.check_stale(11.1, offboard=True, armed=True) == ""
+
+
+def state(t, z=1.0, vz=0.0) -> StateMsg:
+    return StateMsg(seq=int(t * 50), stamp_s=t, t_s=t, pos_enu_m=(0.0, 0.0, z), vel_enu_mps=(0.0, 0.0, vz),
+                    roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, source="sim")
+
+
+def test_hover_thrust_is_learned_from_steady_hover_and_calibrated_on_command():
+    core = GatewayCore(GatewayConfig(hover_thrust_norm=0.5, hover_tau_s=2.0))
+    # the vehicle holds still while 0.525 goes out (the controller's closed loop found it)
+    for k in range(1000):
+        t = k / 50
+        core.on_setpoint(setpoint(thrust=0.525 / core.hover_thrust_norm * 0.5), t)
+        core.on_state(state(t), t, offboard=True)
+    assert core.hover_thrust_norm == pytest.approx(0.525, abs=2e-3)
+    near_ground = GatewayCore(GatewayConfig(hover_thrust_norm=0.5))
+    for k in range(500):
+        near_ground.on_setpoint(setpoint(thrust=0.45), k / 50)
+        near_ground.on_state(state(k / 50, z=0.1), k / 50, offboard=True)
+    assert near_ground.hover_thrust_norm == 0.5, "no learning in ground effect"
+    cal = GatewayCore(GatewayConfig(hover_thrust_norm=0.5, learn_hover=False, calibrate_s=2.0))
+    cal.start_calibration(0.0)
+    for k in range(150):
+        cal.on_setpoint(setpoint(thrust=0.55), k / 50)
+        cal.on_state(state(k / 50), k / 50, offboard=True)
+    assert cal.hover_thrust_norm == pytest.approx(0.55, abs=1e-9)
+    assert any("calibrated" in text for _, text in cal.events)
