@@ -190,22 +190,23 @@ class PendingCompactions:
 class Recorder:
     """The writer thread's work: decode, track flights, write, report (no Zenoh in here)."""
 
-    def __init__(self, config: RecorderConfig, vehicle: str, publish_status=None, query_params=None, log=print) -> None:
+    def __init__(self, config: RecorderConfig, vehicle: str, publish_status=None, query_params=None, log=print,
+                 report=None) -> None:
         from recordings.layout import message_type
 
         self._message_type = message_type
         self.config = config
         self.vehicle = vehicle
         self.directory = Path(config.directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
-        for stale in self.directory.glob(".*.compacting.rrd"):  # a compaction cut short
-            stale.unlink(missing_ok=True)
         self.pending = PendingCompactions(self.directory / f".{vehicle}.to-compact.json")
         self.tracker = FlightTracker(config)
         self.active = ActiveFlight(self.directory, vehicle)
         self.publish_status = publish_status or (lambda msg: None)
         self.query_params = query_params or (lambda: {})
         self.log = log
+        self.report = report or (lambda level, text: log(f"{level}: {text}"))
+        self.errors = 0
+        self.last_error = ""
         self.queue: queue.Queue = queue.Queue(maxsize=config.queue_size)
         self.preroll: deque = deque()
         self.writer = None
@@ -237,38 +238,66 @@ class Recorder:
             self._repaired.add(path)
             self._compact(path, "repaired after a crash")
 
-    def run(self) -> None:
+    def prepare(self) -> None:
+        """Create the folder, clear scratch files, compact what a shutdown or a crash left."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        for stale in self.directory.glob(".*.compacting.rrd"):  # a compaction cut short
+            stale.unlink(missing_ok=True)
         self._repair_crashed(self.active.load())
         if self.config.compact:
             for path in self.pending.paths():
                 self._compact(path, "closed at a shutdown")
+
+    def _guarded(self, fn, *args) -> None:
+        """A failure to write (disk full, folder gone, ...) ends the recording, never the recorder:
+        a recorder that crash-looped would make the launcher give up on the whole system."""
+        try:
+            fn(*args)
+        except Exception as exc:  # whatever the file system or the native writer raise
+            self.errors += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            if self.errors <= 5 or self.errors % 100 == 0:
+                self.report("error", f"recording failed ({self.errors} failures): {self.last_error}")
+            if self.writer is not None:
+                writer, self.writer = self.writer, None
+                try:
+                    writer.close()
+                except Exception:
+                    pass
+            if self.tracker.recording:
+                self.tracker.command("stop")  # and no automatic restart before the next arming
+
+    def _flush(self) -> None:
+        if self.writer is not None:
+            self.writer.flush()
+            self._touch()
+
+    def run(self) -> None:
+        self._guarded(self.prepare)
         next_flush = time.monotonic() + self.config.flush_period_s
         try:
             while not self._stop.is_set():
                 timeout = max(0.0, next_flush - time.monotonic())
                 try:
-                    item = self.queue.get(timeout=timeout)
-                    self._handle(item)
+                    self._guarded(self._handle, self.queue.get(timeout=timeout))
                 except queue.Empty:
                     pass
                 now = time.monotonic()
                 if now >= next_flush:
                     next_flush = now + self.config.flush_period_s
                     if self.queue.empty():  # with a backlog, newer samples are waiting: not silent
-                        self._apply(self.tracker.tick(now), now)
-                    if self.writer is not None:
-                        self.writer.flush()
-                        self._touch()
+                        self._guarded(self._apply, self.tracker.tick(now), now)
+                    self._guarded(self._flush)
                     if now - self._last_status >= self.config.status_period_s:
-                        self._status()
+                        self._guarded(self._status)
         finally:
             drain_until = time.monotonic() + 0.5  # what arrived before the stop, within the launcher's patience
             while time.monotonic() < drain_until:
                 try:
-                    self._handle(self.queue.get_nowait())
+                    self._guarded(self._handle, self.queue.get_nowait())
                 except queue.Empty:
                     break
-            self._end("recorder stopped", keep_active=False)
+            self._guarded(lambda: self._end("recorder stopped", keep_active=False))
 
     def stop(self) -> None:
         self._stop.set()
@@ -433,7 +462,8 @@ def run(args, bus) -> int:
                 pass
         return out
 
-    recorder = Recorder(config, args.vehicle, publish_status=put_status, query_params=query_params, log=node.log)
+    recorder = Recorder(config, args.vehicle, publish_status=put_status, query_params=query_params, log=node.log,
+                        report=node.event)
 
     def on_sample(sample) -> None:
         found = channel_of(str(sample.key_expr))
@@ -452,8 +482,10 @@ def run(args, bus) -> int:
 
     node.on_command(on_command)
     node._declared.append(node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample))
-    node.status_hook = lambda: (f"recording {recorder.flight} segment {recorder.segment}" if recorder.writer
-                                else "idle") + (f", dropped {recorder.dropped}" if recorder.dropped else "")
+    node.status_hook = lambda: ((f"recording {recorder.flight} segment {recorder.segment}" if recorder.writer else "idle")
+                                + (f", dropped {recorder.dropped}" if recorder.dropped else "")
+                                + (f", {recorder.errors} write failures, last: {recorder.last_error}" if recorder.errors
+                                   else ""))
     writer_thread = threading.Thread(target=recorder.run, name="recorder-writer", daemon=True)
 
     def main(node: Node) -> None:

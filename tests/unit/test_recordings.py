@@ -3,6 +3,7 @@ training-set extraction rules, flight boundaries."""
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
@@ -306,3 +307,25 @@ def test_a_recorder_restarted_mid_flight_repairs_the_cut_file_and_writes_the_nex
 
     assert verify(tmp_path / f"{flight}.seg0.rrd")[0], "the cut segment was repaired"
     assert not (tmp_path / ".uav1.active.json").exists()
+
+
+def test_a_recorder_that_cannot_write_reports_it_and_keeps_running(tmp_path):
+    import threading
+
+    from services.recorder import Recorder
+
+    blocked = tmp_path / "not-a-folder"
+    blocked.write_text("a file where the recordings folder should be")
+    reports, statuses = [], []
+    rec = Recorder(RecorderConfig(directory=str(blocked / "flights")), "uav1", publish_status=statuses.append,
+                   log=lambda *_: None, report=lambda level, text: reports.append((level, text)))
+    thread = threading.Thread(target=rec.run)
+    thread.start()
+    for channel, msg in flight_messages(30):
+        rec.offer(channel, msg.to_bytes(), 1.0 + msg.stamp_s)
+    time.sleep(0.5)
+    rec.stop()
+    thread.join(10)
+    assert not thread.is_alive() and rec.errors >= 2 and reports and reports[0][0] == "error"
+    assert "not-a-folder" in rec.last_error and rec.writer is None
+    assert statuses and not statuses[-1].recording
