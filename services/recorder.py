@@ -215,6 +215,8 @@ class Recorder:
         self.last_reject = ""
         self.flight, self.segment, self.last_end = "", 0, ""
         self._seen: dict[str, set] = {}
+        self.missed: dict[str, int] = {}  # samples the bus never delivered here (seq gaps) per topic
+        self._last_seq: dict[str, int] = {}
         self._last_status = 0.0
         self._stop = threading.Event()
         self._compactions: list[threading.Thread] = []
@@ -333,6 +335,12 @@ class Recorder:
             self._begin(d.start)
 
     def _note(self, channel: str, msg: Message) -> None:
+        seq = getattr(msg, "seq", None)
+        if channel in ("state", "estimate", "setpoint") and seq is not None:
+            last = self._last_seq.get(channel)
+            if last is not None and seq > last + 1:
+                self.missed[channel] = self.missed.get(channel, 0) + seq - last - 1
+            self._last_seq[channel] = seq if last is None or seq > last or seq < last - 1000 else last
         if channel == "estimate":
             self._seen.setdefault("pathways", set()).add(msg.pathway)
             self._seen.setdefault("networks", set()).add(msg.network_id)
@@ -362,7 +370,7 @@ class Recorder:
         props["params"] = {k: v for k, v in params.items()}
         self.writer = FlightWriter(path, vehicle=self.vehicle, flight=flight, segment=segment, properties=props)
         self.flight, self.segment = flight, segment
-        self._seen = {}
+        self._seen, self.missed, self._last_seq = {}, {}, {}
         for _, channel, msg in self.preroll:
             self.writer.add(channel, msg)
             self._note(channel, msg)
@@ -399,7 +407,7 @@ class Recorder:
         w = self.writer
         w.set_properties({"summary": {
             "end_reason": why, "duration_s": round(w.stats.duration_s, 3), "messages": w.stats.messages,
-            "dropped": self.dropped, "rejected": self.rejected,
+            "dropped": self.dropped, "rejected": self.rejected, "missed_samples": dict(self.missed),
             **{k: sorted(v) for k, v in self._seen.items()}}})
         w.close()
         self.writer = None
@@ -407,7 +415,8 @@ class Recorder:
         if not keep_active:
             self.active.clear()
         self.log(f"flight {self.flight} segment {self.segment} closed: {why}; {w.stats.messages} messages, "
-                 f"{w.stats.duration_s:.1f} s, {w.path.stat().st_size / 1e3:.0f} kB")
+                 f"{w.stats.duration_s:.1f} s, {w.path.stat().st_size / 1e3:.0f} kB"
+                 + (f"; samples never delivered here: {self.missed}" if self.missed else ""))
         self._status(force=True)
         if self.config.compact and not self._stop.is_set():
             self._compact(w.path, "flight closed")

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -14,27 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recordings.reader import read_recording, rerun_cli, verify
+from recordings.reader import read_recording, verify
 from runtime.client import command
 from runtime.schema import Keys
 from tests.busutil import Collector, children_of, free_port, neso, peer, session
 
 SAMPLED = ("state", "truth", "estimate", "setpoint", "reference")
 KEYS = Keys("uav1")
-
-
-@pytest.fixture(scope="module")
-def rerun_home(tmp_path_factory):
-    """The `rerun` CLI writes analytics settings under the config folder: keep them in a tmp dir."""
-    home = tmp_path_factory.mktemp("rerun-config")
-    old = os.environ.get("XDG_CONFIG_HOME")
-    os.environ["XDG_CONFIG_HOME"] = str(home)
-    subprocess.run([rerun_cli(), "analytics", "disable"], capture_output=True, timeout=60, check=True)
-    yield home
-    if old is None:
-        os.environ.pop("XDG_CONFIG_HOME", None)
-    else:
-        os.environ["XDG_CONFIG_HOME"] = old
 
 
 class RecordedFlight:

@@ -16,7 +16,7 @@ from tests.busutil import Collector, free_port, hub, neso, peer, session, stop
 EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
 
 
-def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name():
+def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name(rerun_home):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     recorded = read_recording(EXAMPLE)
     with hub(endpoint), session(peer(endpoint)) as s:
@@ -47,7 +47,7 @@ def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name():
         assert np.all(np.diff([m.stamp_s for m in states]) > 0), "stamped with the replay's clock"
 
 
-def test_web_viewer_is_served_on_loopback_at_the_given_ports_and_stops_with_ctrl_c():
+def test_web_viewer_is_served_on_loopback_at_the_given_ports_and_stops_with_ctrl_c(rerun_home):
     web, grpc = free_port(), free_port()
     proc = neso("replay", str(EXAMPLE), "--web", "--web-port", str(web), "--grpc-port", str(grpc))
     try:
