@@ -73,3 +73,23 @@ def _cmdline_has(pid: str, text: str) -> bool:
             return text in f.read().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return False
+
+
+def test_recordings_cli_lists_the_catalog_and_counts_training_pairs(tmp_path, rerun_home):
+    (tmp_path / "landing.rrd").write_bytes(EXAMPLE.read_bytes())
+    listing = neso("recordings", "list", str(tmp_path))
+    out = listing.communicate(timeout=60)[0]
+    assert listing.returncode == 0, out
+    header, row = out.splitlines()[:2]
+    assert header.split()[:9] == ["flight", "seg", "vehicle", "scenario", "duration", "pathway", "network", "L_N", "size"]
+    assert "uav1" in row and "nominal_landing" in row and "12.0 s" in row and "eso" in row and "base-L1.0" in row
+    (tmp_path / "broken.rrd").write_bytes(b"not a recording")
+    listing = neso("recordings", "list", str(tmp_path))
+    out = listing.communicate(timeout=60)[0]
+    assert listing.returncode == 1 and "UNREADABLE" in out
+    counting = neso("recordings", "dataset", str(tmp_path / "landing.rrd"), "--label", "eso")
+    out = counting.communicate(timeout=60)[0]
+    assert counting.returncode == 0 and out.startswith("576 training pairs (eso labels) of vehicle uav1"), out
+    refusing = neso("recordings", "dataset", str(tmp_path / "landing.rrd"), "--label", "tdr")
+    out = refusing.communicate(timeout=60)[0]
+    assert refusing.returncode == 1 and "no usable 'tdr' samples" in out, out
