@@ -490,7 +490,6 @@ def run(args, bus) -> int:
         return True, f"{name} queued"
 
     node.on_command(on_command)
-    node._declared.append(node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample))
     node.status_hook = lambda: ((f"recording {recorder.flight} segment {recorder.segment}" if recorder.writer else "idle")
                                 + (f", dropped {recorder.dropped}" if recorder.dropped else "")
                                 + (f", {recorder.errors} write failures, last: {recorder.last_error}" if recorder.errors
@@ -498,10 +497,13 @@ def run(args, bus) -> int:
     writer_thread = threading.Thread(target=recorder.run, name="recorder-writer", daemon=True)
 
     def main(node: Node) -> None:
+        # every key of the vehicle, the per-service ones included: wider than the role's typed topics
+        everything = node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample)
         writer_thread.start()
         node.log(f"recording {args.vehicle} into {config.directory} "
                  f"({'manual' if not config.auto else 'a file per flight'}, flush every {config.flush_period_s:g} s)")
         node.wait()
+        everything.undeclare()
         recorder.stop()
         writer_thread.join(10.0)
         recorder.join_compactions(1.0)
