@@ -160,8 +160,8 @@ def test_tdr_training_set_is_f_n_plus_delta_f_hat_over_several_recordings(tmp_pa
 
 def test_a_resent_sample_counts_once(tmp_path):
     msgs = flight_messages(60)
-    again = [(c, m) for c, m in msgs if c == "estimate"][40]
-    write(tmp_path / "r.rrd", msgs + [again])
+    at = [i for i, (c, _) in enumerate(msgs) if c == "estimate"][40]
+    write(tmp_path / "r.rrd", msgs[: at + 1] + [msgs[at]] + msgs[at + 1:])  # answered again (a lockstep re-send)
     assert len(select(read_recording(tmp_path / "r.rrd"), "eso").y_mps2) == 60 - 24
 
 
