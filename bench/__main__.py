@@ -5,7 +5,7 @@ tick; network inference at batch 1; and the whole ``neso experiment paper`` pipe
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
-Then recording (:mod:`bench.recording`, ~80 s): loop latency at 50 Hz with the recorder off beside on,
+Then recording (:mod:`bench.recording`, ~85 s): loop latency at 50 Hz with the recorder off beside on,
 the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99

@@ -98,10 +98,10 @@ def dataset_rows(flight_s: float, workdir: Path) -> list[tuple[str, ...]]:
 
 
 def recording_rows(quick: bool = False) -> list[tuple[str, ...]]:
-    """Rows under :data:`COLUMNS` (~80 s; ``quick`` ~35 s)."""
+    """Rows under :data:`COLUMNS` (~85 s; ``quick`` ~35 s)."""
     workdir = Path(tempfile.mkdtemp(prefix="neso-bench-rec-"))
     try:
-        rows = latency_rows(flight_s=8.0 if quick else 20.0, rounds=1 if quick else 2, workdir=workdir)
+        rows = latency_rows(flight_s=6.0 if quick else 10.0, rounds=1 if quick else 2, workdir=workdir)
         cpu, mb = writer_cpu_s_per_flight_s(10.0 if quick else 30.0, workdir)
         rows.append(("recorder writer cost (synthetic flight, flush every 0.1 s)", "", "", "", "",
                      f"{cpu * 100:.1f} % of a core; {mb:.2f} MB per flight second before compaction"))

@@ -47,9 +47,11 @@ class Selection:
 
 
 def _last_by_seq(seqs: np.ndarray) -> np.ndarray:
-    """Indices of the last row of every distinct ``seq`` (a re-sent sample is answered again)."""
-    _, first_of_reversed = np.unique(seqs[::-1], return_index=True)
-    return np.sort(len(seqs) - 1 - first_of_reversed)
+    """Indices of the last row of every run of one ``seq`` (a re-sent sample is answered again,
+    right after the first answer); rows stay in publication order."""
+    if len(seqs) == 0:
+        return np.zeros(0, dtype=int)
+    return np.flatnonzero(np.append(seqs[1:] != seqs[:-1], True))
 
 
 def select(rec: Recording, label: str, *, skip_s: float = 0.5, vehicle: str | None = None) -> Selection:

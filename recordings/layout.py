@@ -1,16 +1,18 @@
 """How bus messages map onto a Rerun recording, and the blueprint the stock viewer opens.
 
-Entity paths mirror the key expressions: field ``pos_enu_m`` of ``neso/uav1/state`` is the
-entity ``neso/uav1/state/pos_enu_m``; the per-service keys keep their service chunk
-(``neso/uav1/health/estimator/rate_hz``). A field's kind follows its declared type in
-``runtime.schema``: numbers, integers, flags and vectors are ``Scalars`` (plottable; a vector
-is one entity with one series per component; a flag is 0/1), strings are ``AnyValues`` component ``text``
-and maps (parameter values) ``AnyValues`` component ``json`` (JSON text). Events are ``TextLog``.
+Entity paths mirror the key expressions. Each channel's messages are stored whole, bit-exact, on
+the entity named by its key (``neso/uav1/state``, ``neso/uav1/health/estimator``): one
+component per field, named ``<message type>.<field>`` (``state.pos_enu_m``; float64, int64,
+bool, a row of float64 for vectors, text; parameter maps as JSON text; the viewer shows them
+like ``AnyValues``). The
+fields an operator plots are also ``Scalars`` on a child entity named by the field
+(``neso/uav1/state/pos_enu_m``, ``neso/uav1/health/estimator/latency_p99_ms``): one chunk per
+channel per flush plus one per plotted field, instead of one per field, keeps the live file and
+the writer's cost down. Events are also ``TextLog`` on ``<key>/log``.
 
 Timelines: ``stamp`` (every message: its ``stamp_s``, the machine's monotonic clock),
 ``seq`` and ``t`` (messages of a sample: the sample number and its time ``t_s``; events,
 health and parameter broadcasts are put on ``t`` at the newest sample time when they arrived).
-Numbers are also stored in full as scalars (``t_s``, ``stamp_s``), so a read back is bit-exact.
 """
 from __future__ import annotations
 
@@ -31,6 +33,11 @@ ARENA_ENTITY = "scene/arena"  # static: the floor square the 3D view frames
 ARENA_HALF_SIZE_M = 1.5
 VECTOR_SERIES = ("x", "y", "z")
 # vector fields plotted with only their z series visible (the rest a click away in the legend)
+# (channel kind, field) also logged as Scalars for the viewer
+PLOTTED = {("state", "pos_enu_m"), ("state", "vel_enu_mps"), ("reference", "pos_enu_m"), ("truth", "pos_enu_m"),
+           ("truth", "disturbance_acc_enu_mps2"), ("estimate", "f_hat_mps2"), ("estimate", "f_n_mps2"),
+           ("estimate", "delta_f_hat_mps2"), ("setpoint", "thrust_n"), ("setpoint", "roll_rad"),
+           ("setpoint", "pitch_rad"), ("health", "latency_p50_ms"), ("health", "latency_p99_ms"), ("health", "rate_hz")}
 Z_ONLY = {("state", "pos_enu_m"), ("reference", "pos_enu_m"), ("truth", "pos_enu_m"), ("estimate", "f_hat_mps2"),
           ("estimate", "f_n_mps2"), ("estimate", "delta_f_hat_mps2"), ("truth", "disturbance_acc_enu_mps2")}
 
@@ -70,19 +77,28 @@ def channel_of(key: str) -> tuple[str, str] | None:
     return None
 
 
+def channel_entity(vehicle: str, channel: str) -> str:
+    """The entity holding a channel's messages whole: its key expression."""
+    return f"{ROOT}/{vehicle}/{channel}"
+
+
 def entity(vehicle: str, channel: str, field: str) -> str:
-    """The entity path of one field of one channel."""
+    """The entity path of one plotted field of one channel."""
     return f"{ROOT}/{vehicle}/{channel}/{field}"
 
 
-def parse_entity(path: str) -> tuple[str, str, str] | None:
-    """(vehicle, channel, field) of an entity path written by :func:`entity`, else None."""
-    parts = str(path).strip("/").split("/")
-    if len(parts) == 4 and parts[0] == ROOT and parts[2] in TOPICS:
-        return parts[1], parts[2], parts[3]
-    if len(parts) == 5 and parts[0] == ROOT and parts[2] in SERVICE_KINDS:
-        return parts[1], f"{parts[2]}/{parts[3]}", parts[4]
-    return None
+def component(cls: type[Message], field: str) -> str:
+    """The ``AnyValues`` component name of one field (type-prefixed: names are global in Rerun)."""
+    return f"{cls.TYPE}.{field}"
+
+
+def is_plotted(channel: str, field: str) -> bool:
+    return (channel.split("/")[0], field) in PLOTTED
+
+
+def parse_channel_entity(path: str) -> tuple[str, str] | None:
+    """(vehicle, channel) of an entity written by :func:`channel_entity`, else None."""
+    return channel_of(str(path).strip("/"))
 
 
 def blueprint(vehicle: str):

@@ -2,8 +2,8 @@
 
 :func:`read_recording` streams the file's chunks (``rerun.chunk.RrdReader``), so it also reads
 a file cut short by a crash (no footer): every chunk written before the crash is there.
-Each field's rows are put back in publication order (row ids are monotonic), and a channel
-whose fields were cut at different rows by a crash is trimmed to the rows every field has.
+A channel's messages are put back in publication order (row ids are monotonic); each flush
+wrote a channel's fields in one chunk, so a crash never leaves a message with some fields only.
 :func:`repair` rewrites such a file with ``rerun rrd optimize`` so ``rerun rrd verify`` passes.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recordings.layout import fields_of, message_type, parse_entity
+from recordings.layout import component, fields_of, message_type, parse_channel_entity
 from runtime.schema import Message
 
 
@@ -136,7 +136,7 @@ def read_recording(path: str | Path) -> Recording:
         raise RecordingError(f"{path}: empty file (the recorder died before its first write?)")
     scratch: list[Path] = []
     props: dict[str, dict] = {}
-    raw: dict[tuple[str, str, str], list[tuple[np.ndarray, object]]] = {}
+    raw: dict[tuple[str, str], list] = {}  # (vehicle, channel) → record batches
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "no footer": expected for a file cut short
@@ -146,16 +146,9 @@ def read_recording(path: str | Path) -> Recording:
                     props.setdefault(ep.rsplit("/", 1)[-1] if ep != "/__properties" else "recording", {}).update(
                         _property_values(chunk.to_record_batch()))
                     continue
-                parsed = parse_entity(ep)
-                if parsed is None:
-                    continue
-                batch = chunk.to_record_batch()
-                names = batch.schema.names
-                data = next((n for n in names if n in ("Scalars:scalars", "text", "json")), None)
-                if data is None:
-                    continue
-                rowids = np.array([bytes(r) for r in batch.column("rerun.controls.RowId").to_pylist()], dtype="S16")
-                raw.setdefault(parsed, []).append((rowids, batch.column(data)))
+                found = parse_channel_entity(ep)
+                if found is not None:
+                    raw.setdefault(found, []).append(chunk.to_record_batch())
     except Exception as exc:  # the native reader raises its own types
         if not raw and not props:
             raise RecordingError(f"{path}: not a readable Rerun recording ({type(exc).__name__}: {exc})") from None
@@ -163,33 +156,42 @@ def read_recording(path: str | Path) -> Recording:
         for tmp in scratch:
             tmp.unlink(missing_ok=True)
     rec = Recording(str(path), props)
-    grouped: dict[tuple[str, str], dict[str, object]] = {}
-    for (vehicle, channel, name), parts in raw.items():
-        try:
-            specs = {s.name: s for s in fields_of(message_type(channel))}
-        except KeyError:
-            continue
-        if name not in specs:
-            continue
-        rowids = np.concatenate([p[0] for p in parts])
-        order = np.argsort(rowids, kind="stable")
-        kind = specs[name].kind
-        if kind in ("number", "integer", "flag"):
-            values = np.concatenate([p[1].flatten().to_numpy(zero_copy_only=False) for p in parts])[order]
-        elif kind == "vector":
-            values = np.stack([np.asarray(v, dtype=float) for p in parts for v in p[1].to_pylist()])[order]
-        else:
-            flat = [v[0] if isinstance(v, list) else v for p in parts for v in p[1].to_pylist()]
-            values = [flat[i] for i in order]
-            if kind == "json":
-                values = [json.loads(v) for v in values]
-        grouped.setdefault((vehicle, channel), {})[name] = values
-    for (vehicle, channel), columns in grouped.items():
-        n = min(len(v) for v in columns.values())
-        if set(columns) != {s.name for s in fields_of(message_type(channel))}:
-            continue  # a field's every chunk lost: not a usable channel
-        rec.vehicles.setdefault(vehicle, {})[channel] = Channel(channel, {k: v[:n] for k, v in columns.items()})
+    for (vehicle, channel), batches in raw.items():
+        columns = _channel_columns(channel, batches)
+        if columns is not None:
+            rec.vehicles.setdefault(vehicle, {})[channel] = Channel(channel, columns)
     return rec
+
+
+def _channel_columns(channel: str, batches: list) -> dict[str, object] | None:
+    """Field → values of one channel's messages in publication order (row ids are monotonic);
+    None if a field is missing (not a channel this version wrote)."""
+    cls = message_type(channel)
+    specs = fields_of(cls)
+    rows = [b for b in batches if component(cls, specs[0].name) in b.schema.names]  # not the TextLog chunks
+    if not rows:
+        return None
+    rowids = np.concatenate([np.array(b.column("rerun.controls.RowId").to_pylist(), dtype="S16") for b in rows])
+    order = np.argsort(rowids, kind="stable")
+    out: dict[str, object] = {}
+    for spec in specs:
+        name = component(cls, spec.name)
+        if any(name not in b.schema.names for b in rows):
+            return None
+        flat = [b.column(name).flatten() for b in rows]
+        if spec.kind in ("number", "integer", "flag"):
+            values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat])
+            if spec.kind == "flag":
+                values = values.astype(bool)
+            out[spec.name] = values[order]
+        elif spec.kind == "vector":
+            values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat]).astype(float)
+            out[spec.name] = values.reshape(len(order), -1)[order]
+        else:
+            values = [v for f in flat for v in f.to_pylist()]
+            values = [values[i] for i in order]
+            out[spec.name] = [json.loads(v) for v in values] if spec.kind == "json" else values
+    return out
 
 
 def rerun_cli() -> str:

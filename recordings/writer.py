@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from recordings.layout import (APPLICATION_ID, ARENA_ENTITY, ARENA_HALF_SIZE_M, POSE_ENTITY, REFERENCE_POINT,
-                               SAMPLED_TOPICS, VECTOR_SERIES, Z_ONLY, blueprint, entity, fields_of, message_type)
+                               SAMPLED_TOPICS, VECTOR_SERIES, Z_ONLY, blueprint, channel_entity, component, entity,
+                               fields_of, is_plotted, message_type)
 from runtime.schema import EventMsg, Message, ROOT
 
 _TEXT_LEVEL = {"info": "INFO", "warning": "WARN", "error": "ERROR"}
@@ -46,6 +47,38 @@ class WriterStats:
         if self.first_stamp_s is None or self.last_stamp_s is None:
             return 0.0
         return max(0.0, self.last_stamp_s - self.first_stamp_s)
+
+
+class _Arrow:
+    """A ready Arrow array as a Rerun component batch (``rr.ComponentBatchLike``): building the
+    columns straight from numpy costs a fraction of ``rr.AnyValues`` (which inspects each value)."""
+
+    def __init__(self, array) -> None:
+        self._array = array
+
+    def as_arrow_array(self):
+        return self._array
+
+
+def _field_column(name: str, kind: str, values: list):
+    """One field of a batch of messages as a column of one-row (vectors: k-row) components."""
+    import pyarrow as pa
+    import rerun as rr
+
+    if kind == "vector":
+        arr = np.array(values, dtype=float)
+        return rr.ComponentColumn(name, _Arrow(pa.array(arr.reshape(-1))), lengths=[arr.shape[1]] * len(values))
+    if kind == "number":
+        data = pa.array(np.array(values, dtype=float))
+    elif kind == "integer":
+        data = pa.array(np.array(values, dtype=np.int64))
+    elif kind == "flag":
+        data = pa.array(np.array(values, dtype=bool))
+    elif kind == "text":
+        data = pa.array([str(v) for v in values], type=pa.string())
+    else:
+        data = pa.array([json.dumps(v, sort_keys=True) for v in values], type=pa.string())
+    return rr.ComponentColumn(name, _Arrow(data))
 
 
 class FlightWriter:
@@ -91,7 +124,7 @@ class FlightWriter:
                                              colors=[[160, 160, 160]]), static=True, recording=self.rec)
         for topic in SAMPLED_TOPICS:  # name the components of vector series; show z alone where z is what matters
             for spec in fields_of(message_type(topic)):
-                if spec.kind == "vector" and spec.name != "z":
+                if spec.kind == "vector" and is_plotted(topic, spec.name):
                     visible = [False, False, True] if (topic, spec.name) in Z_ONLY else [True, True, True]
                     rr.log(entity(self.vehicle, topic, spec.name),
                            rr.SeriesLines(names=[f"{topic} {spec.name} {c}" for c in VECTOR_SERIES], visible_series=visible),
@@ -147,21 +180,20 @@ class FlightWriter:
                         rr.TimeColumn("t", duration=np.array([m.t_s for m in msgs], dtype=float))]
         elif all(t is not None for t in t_at_add):  # events, health, params: at the flight time they arrived
             indexes.append(rr.TimeColumn("t", duration=np.array(t_at_add, dtype=float)))
+        columns = []
         for spec in fields_of(cls):
             values = [getattr(m, spec.name) for m in msgs]
-            path = entity(self.vehicle, channel, spec.name)
-            if spec.kind in ("number", "integer", "flag"):
-                columns = rr.Scalars.columns(scalars=np.array(values, dtype=float))
-            elif spec.kind == "vector":
+            columns.append(_field_column(component(cls, spec.name), spec.kind, values))
+            if is_plotted(channel, spec.name):
                 arr = np.array(values, dtype=float)
-                columns = rr.Scalars.columns(scalars=arr.reshape(-1)).partition([arr.shape[1]] * len(msgs))
-            elif spec.kind == "text":
-                columns = rr.AnyValues.columns(text=[str(v) for v in values])
-            else:
-                columns = rr.AnyValues.columns(json=[json.dumps(v, sort_keys=True) for v in values])
-            rr.send_columns(path, indexes=indexes, columns=columns, recording=self.rec)
+                scalars = rr.Scalars.columns(scalars=arr.reshape(-1))
+                if arr.ndim == 2:
+                    scalars = scalars.partition([arr.shape[1]] * len(msgs))
+                rr.send_columns(entity(self.vehicle, channel, spec.name), indexes=indexes, columns=scalars,
+                                recording=self.rec)
+        rr.send_columns(channel_entity(self.vehicle, channel), indexes=indexes, columns=columns, recording=self.rec)
         if isinstance(msgs[0], EventMsg):
-            rr.send_columns(f"{ROOT}/{self.vehicle}/{channel}", indexes=indexes,
+            rr.send_columns(f"{ROOT}/{self.vehicle}/{channel}/log", indexes=indexes,
                             columns=rr.TextLog.columns(text=[m.text for m in msgs],
                                                        level=[_TEXT_LEVEL.get(m.level, "INFO") for m in msgs]),
                             recording=self.rec)

@@ -190,22 +190,23 @@ class PendingCompactions:
 class Recorder:
     """The writer thread's work: decode, track flights, write, report (no Zenoh in here)."""
 
-    def __init__(self, config: RecorderConfig, vehicle: str, publish_status=None, query_params=None, log=print) -> None:
+    def __init__(self, config: RecorderConfig, vehicle: str, publish_status=None, query_params=None, log=print,
+                 report=None) -> None:
         from recordings.layout import message_type
 
         self._message_type = message_type
         self.config = config
         self.vehicle = vehicle
         self.directory = Path(config.directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
-        for stale in self.directory.glob(".*.compacting.rrd"):  # a compaction cut short
-            stale.unlink(missing_ok=True)
         self.pending = PendingCompactions(self.directory / f".{vehicle}.to-compact.json")
         self.tracker = FlightTracker(config)
         self.active = ActiveFlight(self.directory, vehicle)
         self.publish_status = publish_status or (lambda msg: None)
         self.query_params = query_params or (lambda: {})
         self.log = log
+        self.report = report or (lambda level, text: log(f"{level}: {text}"))
+        self.errors = 0
+        self.last_error = ""
         self.queue: queue.Queue = queue.Queue(maxsize=config.queue_size)
         self.preroll: deque = deque()
         self.writer = None
@@ -214,6 +215,8 @@ class Recorder:
         self.last_reject = ""
         self.flight, self.segment, self.last_end = "", 0, ""
         self._seen: dict[str, set] = {}
+        self.missed: dict[str, int] = {}  # samples the bus never delivered here (seq gaps) per topic
+        self._last_seq: dict[str, int] = {}
         self._last_status = 0.0
         self._stop = threading.Event()
         self._compactions: list[threading.Thread] = []
@@ -237,38 +240,66 @@ class Recorder:
             self._repaired.add(path)
             self._compact(path, "repaired after a crash")
 
-    def run(self) -> None:
+    def prepare(self) -> None:
+        """Create the folder, clear scratch files, compact what a shutdown or a crash left."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        for stale in self.directory.glob(".*.compacting.rrd"):  # a compaction cut short
+            stale.unlink(missing_ok=True)
         self._repair_crashed(self.active.load())
         if self.config.compact:
             for path in self.pending.paths():
                 self._compact(path, "closed at a shutdown")
+
+    def _guarded(self, fn, *args) -> None:
+        """A failure to write (disk full, folder gone, ...) ends the recording, never the recorder:
+        a recorder that crash-looped would make the launcher give up on the whole system."""
+        try:
+            fn(*args)
+        except Exception as exc:  # whatever the file system or the native writer raise
+            self.errors += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            if self.errors <= 5 or self.errors % 100 == 0:
+                self.report("error", f"recording failed ({self.errors} failures): {self.last_error}")
+            if self.writer is not None:
+                writer, self.writer = self.writer, None
+                try:
+                    writer.close()
+                except Exception:
+                    pass
+            if self.tracker.recording:
+                self.tracker.command("stop")  # and no automatic restart before the next arming
+
+    def _flush(self) -> None:
+        if self.writer is not None:
+            self.writer.flush()
+            self._touch()
+
+    def run(self) -> None:
+        self._guarded(self.prepare)
         next_flush = time.monotonic() + self.config.flush_period_s
         try:
             while not self._stop.is_set():
                 timeout = max(0.0, next_flush - time.monotonic())
                 try:
-                    item = self.queue.get(timeout=timeout)
-                    self._handle(item)
+                    self._guarded(self._handle, self.queue.get(timeout=timeout))
                 except queue.Empty:
                     pass
                 now = time.monotonic()
                 if now >= next_flush:
                     next_flush = now + self.config.flush_period_s
                     if self.queue.empty():  # with a backlog, newer samples are waiting: not silent
-                        self._apply(self.tracker.tick(now), now)
-                    if self.writer is not None:
-                        self.writer.flush()
-                        self._touch()
+                        self._guarded(self._apply, self.tracker.tick(now), now)
+                    self._guarded(self._flush)
                     if now - self._last_status >= self.config.status_period_s:
-                        self._status()
+                        self._guarded(self._status)
         finally:
             drain_until = time.monotonic() + 0.5  # what arrived before the stop, within the launcher's patience
             while time.monotonic() < drain_until:
                 try:
-                    self._handle(self.queue.get_nowait())
+                    self._guarded(self._handle, self.queue.get_nowait())
                 except queue.Empty:
                     break
-            self._end("recorder stopped", keep_active=False)
+            self._guarded(lambda: self._end("recorder stopped", keep_active=False))
 
     def stop(self) -> None:
         self._stop.set()
@@ -304,6 +335,12 @@ class Recorder:
             self._begin(d.start)
 
     def _note(self, channel: str, msg: Message) -> None:
+        seq = getattr(msg, "seq", None)
+        if channel in ("state", "estimate", "setpoint") and seq is not None:
+            last = self._last_seq.get(channel)
+            if last is not None and seq > last + 1:
+                self.missed[channel] = self.missed.get(channel, 0) + seq - last - 1
+            self._last_seq[channel] = seq if last is None or seq > last or seq < last - 1000 else last
         if channel == "estimate":
             self._seen.setdefault("pathways", set()).add(msg.pathway)
             self._seen.setdefault("networks", set()).add(msg.network_id)
@@ -333,7 +370,7 @@ class Recorder:
         props["params"] = {k: v for k, v in params.items()}
         self.writer = FlightWriter(path, vehicle=self.vehicle, flight=flight, segment=segment, properties=props)
         self.flight, self.segment = flight, segment
-        self._seen = {}
+        self._seen, self.missed, self._last_seq = {}, {}, {}
         for _, channel, msg in self.preroll:
             self.writer.add(channel, msg)
             self._note(channel, msg)
@@ -370,7 +407,7 @@ class Recorder:
         w = self.writer
         w.set_properties({"summary": {
             "end_reason": why, "duration_s": round(w.stats.duration_s, 3), "messages": w.stats.messages,
-            "dropped": self.dropped, "rejected": self.rejected,
+            "dropped": self.dropped, "rejected": self.rejected, "missed_samples": dict(self.missed),
             **{k: sorted(v) for k, v in self._seen.items()}}})
         w.close()
         self.writer = None
@@ -378,7 +415,8 @@ class Recorder:
         if not keep_active:
             self.active.clear()
         self.log(f"flight {self.flight} segment {self.segment} closed: {why}; {w.stats.messages} messages, "
-                 f"{w.stats.duration_s:.1f} s, {w.path.stat().st_size / 1e3:.0f} kB")
+                 f"{w.stats.duration_s:.1f} s, {w.path.stat().st_size / 1e3:.0f} kB"
+                 + (f"; samples never delivered here: {self.missed}" if self.missed else ""))
         self._status(force=True)
         if self.config.compact and not self._stop.is_set():
             self._compact(w.path, "flight closed")
@@ -433,7 +471,8 @@ def run(args, bus) -> int:
                 pass
         return out
 
-    recorder = Recorder(config, args.vehicle, publish_status=put_status, query_params=query_params, log=node.log)
+    recorder = Recorder(config, args.vehicle, publish_status=put_status, query_params=query_params, log=node.log,
+                        report=node.event)
 
     def on_sample(sample) -> None:
         found = channel_of(str(sample.key_expr))
@@ -451,16 +490,20 @@ def run(args, bus) -> int:
         return True, f"{name} queued"
 
     node.on_command(on_command)
-    node._declared.append(node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample))
-    node.status_hook = lambda: (f"recording {recorder.flight} segment {recorder.segment}" if recorder.writer
-                                else "idle") + (f", dropped {recorder.dropped}" if recorder.dropped else "")
+    node.status_hook = lambda: ((f"recording {recorder.flight} segment {recorder.segment}" if recorder.writer else "idle")
+                                + (f", dropped {recorder.dropped}" if recorder.dropped else "")
+                                + (f", {recorder.errors} write failures, last: {recorder.last_error}" if recorder.errors
+                                   else ""))
     writer_thread = threading.Thread(target=recorder.run, name="recorder-writer", daemon=True)
 
     def main(node: Node) -> None:
+        # every key of the vehicle, the per-service ones included: wider than the role's typed topics
+        everything = node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample)
         writer_thread.start()
         node.log(f"recording {args.vehicle} into {config.directory} "
                  f"({'manual' if not config.auto else 'a file per flight'}, flush every {config.flush_period_s:g} s)")
         node.wait()
+        everything.undeclare()
         recorder.stop()
         writer_thread.join(10.0)
         recorder.join_compactions(1.0)

@@ -16,7 +16,7 @@ from tests.busutil import Collector, free_port, hub, neso, peer, session, stop
 EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
 
 
-def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name():
+def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name(rerun_home):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     recorded = read_recording(EXAMPLE)
     with hub(endpoint), session(peer(endpoint)) as s:
@@ -47,7 +47,7 @@ def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name():
         assert np.all(np.diff([m.stamp_s for m in states]) > 0), "stamped with the replay's clock"
 
 
-def test_web_viewer_is_served_on_loopback_at_the_given_ports_and_stops_with_ctrl_c():
+def test_web_viewer_is_served_on_loopback_at_the_given_ports_and_stops_with_ctrl_c(rerun_home):
     web, grpc = free_port(), free_port()
     proc = neso("replay", str(EXAMPLE), "--web", "--web-port", str(web), "--grpc-port", str(grpc))
     try:
@@ -73,3 +73,23 @@ def _cmdline_has(pid: str, text: str) -> bool:
             return text in f.read().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return False
+
+
+def test_recordings_cli_lists_the_catalog_and_counts_training_pairs(tmp_path, rerun_home):
+    (tmp_path / "landing.rrd").write_bytes(EXAMPLE.read_bytes())
+    listing = neso("recordings", "list", str(tmp_path))
+    out = listing.communicate(timeout=60)[0]
+    assert listing.returncode == 0, out
+    header, row = out.splitlines()[:2]
+    assert header.split()[:9] == ["flight", "seg", "vehicle", "scenario", "duration", "pathway", "network", "L_N", "size"]
+    assert "uav1" in row and "nominal_landing" in row and "12.0 s" in row and "eso" in row and "base-L1.0" in row
+    (tmp_path / "broken.rrd").write_bytes(b"not a recording")
+    listing = neso("recordings", "list", str(tmp_path))
+    out = listing.communicate(timeout=60)[0]
+    assert listing.returncode == 1 and "UNREADABLE" in out
+    counting = neso("recordings", "dataset", str(tmp_path / "landing.rrd"), "--label", "eso")
+    out = counting.communicate(timeout=60)[0]
+    assert counting.returncode == 0 and out.startswith("576 training pairs (eso labels) of vehicle uav1"), out
+    refusing = neso("recordings", "dataset", str(tmp_path / "landing.rrd"), "--label", "tdr")
+    out = refusing.communicate(timeout=60)[0]
+    assert refusing.returncode == 1 and "no usable 'tdr' samples" in out, out

@@ -3,13 +3,14 @@ training-set extraction rules, flight boundaries."""
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from recordings.dataset import load_training_set, select
-from recordings.layout import channel_of, entity, fields_of, message_type, parse_entity
+from recordings.layout import channel_entity, channel_of, entity, fields_of, message_type, parse_channel_entity
 from recordings.reader import RecordingError, read_recording
 from recordings.writer import FlightWriter, segment_path
 from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, ParamStateMsg, ReferenceMsg, SetpointMsg, StateMsg,
@@ -71,7 +72,9 @@ def test_entity_paths_mirror_the_key_expressions_and_every_field_has_a_kind():
     assert channel_of("neso/uav1/health/estimator") == ("uav1", "health/estimator")
     assert channel_of("neso/uav1/param/estimator") is None and channel_of("other/uav1/state") is None
     assert entity("uav1", "state", "pos_enu_m") == "neso/uav1/state/pos_enu_m"
-    assert parse_entity("/neso/uav1/health/estimator/rate_hz") == ("uav1", "health/estimator", "rate_hz")
+    assert channel_entity("uav1", "health/estimator") == "neso/uav1/health/estimator"
+    assert parse_channel_entity("/neso/uav1/health/estimator") == ("uav1", "health/estimator")
+    assert parse_channel_entity("/neso/uav1/state/pos_enu_m") is None, "a plotted field, not a channel"
     for cls in TOPICS.values():
         assert [f.name for f in fields_of(cls)] == [f.name for f in dataclasses.fields(cls)]
     assert message_type("params/estimator") is ParamStateMsg
@@ -105,11 +108,15 @@ def test_a_file_cut_short_is_read_up_to_its_last_flush(tmp_path):
     path = tmp_path / "cut.rrd"
     write(path, msgs, flush_every=100, close=False)  # no footer, as after kill -9
     full = path.read_bytes()
-    path.write_bytes(full[: int(len(full) * 0.8)])  # and the tail of the last write torn off
+    path.write_bytes(full[: int(len(full) * 0.6)])  # and the tail of the last write torn off
     rec = read_recording(path)
-    states = rec.channel("state").messages()
-    assert 0 < len(states) < 200
-    assert states == [m for c, m in msgs if c == "state"][: len(states)], "a prefix, exactly"
+    read = total = 0
+    for channel in ("state", "truth", "estimate", "setpoint", "reference"):
+        got = rec.channel(channel).messages()
+        sent = [m for c, m in msgs if c == channel]
+        assert got == sent[: len(got)], f"{channel}: a prefix, exactly"
+        read, total = read + len(got), total + len(sent)
+    assert 0 < read < total
 
 
 def test_not_a_recording_is_a_clear_error(tmp_path):
@@ -153,8 +160,8 @@ def test_tdr_training_set_is_f_n_plus_delta_f_hat_over_several_recordings(tmp_pa
 
 def test_a_resent_sample_counts_once(tmp_path):
     msgs = flight_messages(60)
-    again = [(c, m) for c, m in msgs if c == "estimate"][40]
-    write(tmp_path / "r.rrd", msgs + [again])
+    at = [i for i, (c, _) in enumerate(msgs) if c == "estimate"][40]
+    write(tmp_path / "r.rrd", msgs[: at + 1] + [msgs[at]] + msgs[at + 1:])  # answered again (a lockstep re-send)
     assert len(select(read_recording(tmp_path / "r.rrd"), "eso").y_mps2) == 60 - 24
 
 
@@ -306,3 +313,25 @@ def test_a_recorder_restarted_mid_flight_repairs_the_cut_file_and_writes_the_nex
 
     assert verify(tmp_path / f"{flight}.seg0.rrd")[0], "the cut segment was repaired"
     assert not (tmp_path / ".uav1.active.json").exists()
+
+
+def test_a_recorder_that_cannot_write_reports_it_and_keeps_running(tmp_path):
+    import threading
+
+    from services.recorder import Recorder
+
+    blocked = tmp_path / "not-a-folder"
+    blocked.write_text("a file where the recordings folder should be")
+    reports, statuses = [], []
+    rec = Recorder(RecorderConfig(directory=str(blocked / "flights")), "uav1", publish_status=statuses.append,
+                   log=lambda *_: None, report=lambda level, text: reports.append((level, text)))
+    thread = threading.Thread(target=rec.run)
+    thread.start()
+    for channel, msg in flight_messages(30):
+        rec.offer(channel, msg.to_bytes(), 1.0 + msg.stamp_s)
+    time.sleep(0.5)
+    rec.stop()
+    thread.join(10)
+    assert not thread.is_alive() and rec.errors >= 2 and reports and reports[0][0] == "error"
+    assert "not-a-folder" in rec.last_error and rec.writer is None
+    assert statuses and not statuses[-1].recording
