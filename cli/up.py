@@ -27,6 +27,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
+    p.add_argument("--no-dashboard", action="store_false", dest="dashboard", help="do not start the web dashboard")
+    p.add_argument("--dashboard-host", default="127.0.0.1", help="dashboard address (default loopback only)")
+    p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
 
 
 def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
@@ -47,6 +50,10 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
             specific += ["--network", args.network]
     elif role == "controller":
         specific = ["--mission", args.mission, "--rate", str(args.rate)]
+    elif role == "dashboard":
+        specific = ["--host", args.dashboard_host, "--port", str(args.dashboard_port)]
+        if args.network is not None:
+            specific += ["--network", args.network]
     return python_module_argv("cli.main", "run", role, *common, *specific)
 
 
@@ -62,6 +69,9 @@ def build_specs(args) -> list[ProcessSpec]:
                 argv += ("--low-latency",)
             specs.append(ProcessSpec(role.name, argv))
             continue
+        if not role.per_vehicle:
+            specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0)))
+            continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
             finishes = role.name == "source" and args.duration > 0
@@ -76,7 +86,10 @@ def run(args) -> int:
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
     print("  live parameters:  neso params get estimator | neso params set estimator pathway=eso lipschitz_bound=0.5",
           flush=True)
-    print("  missions:         neso cmd controller landing_test | takeoff | hover | lemniscate | land", flush=True)
+    print("  missions:         neso cmd controller landing_test | takeoff | hover | lemniscate | land | arm | hold | abort",
+          flush=True)
+    if args.dashboard:
+        print(f"  dashboard:        http://{args.dashboard_host}:{args.dashboard_port}", flush=True)
     print("  stop:             Ctrl-C", flush=True)
     supervisor.start()
     return supervisor.run()

@@ -73,3 +73,13 @@ def test_every_role_module_has_the_service_entry_points():
         module = importlib.import_module(r.module)
         assert callable(module.add_arguments) and callable(module.run)
         module.add_arguments(argparse.ArgumentParser())
+
+
+def test_a_per_bus_role_runs_once_for_all_vehicles_and_can_be_turned_off():
+    args = build_parser().parse_args(["up", "--name", "a", "--name", "b", "--dashboard-port", "8181"])
+    specs = {s.name: s for s in build_specs(args)}
+    assert [n for n in specs if n.endswith("dashboard")] == ["dashboard"]
+    argv = specs["dashboard"].argv
+    assert argv[argv.index("--port") + 1] == "8181" and argv[argv.index("--host") + 1] == "127.0.0.1"
+    off = build_parser().parse_args(["up", "--no-dashboard"])
+    assert "dashboard" not in [s.name for s in build_specs(off)]
