@@ -77,7 +77,11 @@ class DashboardView:
     def _build(self) -> None:
         s, gui = self.server.scene, self.server.gui
         s.set_up_direction("+z")
-        self.server.initial_camera.position = (1.9, -1.9, 1.6)
+        # shadows and the image-based environment light cost most of a software-rendered frame
+        # (Chromium without a GPU: 4 fps with them, see dashboard/README.md); plain lights instead
+        s.configure_default_lights(cast_shadow=False)
+        s.configure_environment_map(hdri=None)
+        self.server.initial_camera.position = (1.4, -1.6, 1.5)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.6)
         s.add_grid("/ground", width=6.0, height=6.0, cell_size=0.25, section_size=1.0, plane_color=(236, 240, 236),
                    plane_opacity=0.6)
@@ -169,7 +173,7 @@ class DashboardView:
             handle.content = text
 
     def _show_reply(self, target, what: str, ok: bool, text: str) -> None:
-        mark = "✅ **accepted**" if ok else "⛔ **refused**"
+        mark = "✔ **accepted**" if ok else "✖ **refused**"
         self._set(target, f"{mark} · {what}: {text}" if text else f"{mark} · {what}")
 
     def _vehicle(self) -> VehicleModel:
@@ -192,7 +196,7 @@ class DashboardView:
             airborne = self._vehicle().airborne(time.monotonic())
         if value in RISKY_PATHWAYS and airborne:
             self._pending_pathway = (vehicle, value)
-            self._set(self.confirm_text, f"⚠️ **{value}** while airborne: no online correction of the network. Confirm?")
+            self._set(self.confirm_text, f"⚠ **{value}** while airborne: no online correction of the network. Confirm?")
             for h in (self.confirm_text, self.confirm_btn, self.cancel_btn):
                 h.visible = True
             return
@@ -334,7 +338,7 @@ class DashboardView:
         segment = ref.segment if ref is not None and now_s - v.received.get("reference", -1e9) < 1.0 else "idle"
         rec = v.latest.get("recording")
         rec_text = "not recorded (no recorder on the bus)" if rec is None else (
-            f"🔴 recording `{rec.path}` · {rec.duration_s:.1f} s" if rec.recording else "recorder idle")
+            f"● REC `{rec.path}` · {rec.duration_s:.1f} s" if rec.recording else "recorder idle")
         self._set(self.title, f"### {v.name} · {segment} · pathway **{est.pathway if est else '–'}**  \n"
                               f"certificate **{'–' if cert is None else ('HOLDS' if cert.holds else 'FAILS')}** · "
                               f"{rec_text}")
@@ -370,8 +374,8 @@ class DashboardView:
         for name, sh in sorted(v.services.items()):
             h = sh.health
             stale = sh.stale(now_s)
-            rows.append(f"| {name} | {'🟢' if sh.alive else '🔴'} | {_fmt(h.rate_hz if h else math.nan, '.1f')} Hz | "
-                        f"{'⚠️ ' if stale else ''}{_fmt(max(h.staleness_s.values(), default=-1.0) * 1e3 if h else math.nan, '.0f')} ms | "
+            rows.append(f"| {name} | {'yes' if sh.alive else '**NO**'} | {_fmt(h.rate_hz if h else math.nan, '.1f')} Hz | "
+                        f"{'⚠ ' if stale else ''}{_fmt(max(h.staleness_s.values(), default=-1.0) * 1e3 if h else math.nan, '.0f')} ms | "
                         f"{int(sum(h.rejected.values())) if h else '–'} | {(h.status if h else 'no report')[:60]} |")
         rows.append(f"\nDashboard: {self.model.rejected} rejected messages"
                     + (f" (last: {self.model.last_rejection[:120]})" if self.model.rejected else ""))
