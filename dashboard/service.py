@@ -207,13 +207,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     parser.add_argument("--ui-rate", type=float, default=20.0, help="pose updates per second (plots at half)")
     parser.add_argument("--window", type=float, default=10.0, help="seconds shown in plots and figures")
+    parser.add_argument("--nice", type=int, default=10,
+                        help="CPU niceness added at start (default 10): the page must never slow the control loop")
     parser.add_argument("--network", default=DEFAULT_NETWORK,
                         help="the network the estimators fly (for L_N in physical units until a network report)")
 
 
 def run(args, bus) -> int:
+    import os
     import signal
 
+    if args.nice:
+        os.nice(args.nice)
     factor = physical_factor(args.network)
     dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
                      phys_per_norm=factor, default_vehicle=args.vehicle)

@@ -20,23 +20,12 @@ import pytest
 
 from runtime.client import get_params
 from runtime.schema import EventMsg, Keys, NetworkMsg, RecordingMsg, TelemetryMsg
+from tests.browser.chromium import launch, renice_browsers
 from tests.busutil import REPO, Collector, children_of, free_port, neso, peer, session, stop
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--enable-unsafe-swiftshader"]
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
 KEYS = Keys("uav1")
 FIGURES: dict[str, object] = {}
-
-
-def launch_chromium(pw):
-    """Debian's Chromium through Playwright (never a downloaded browser); a clear failure if it is missing."""
-    if not os.access(CHROMIUM, os.X_OK):
-        pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium (apt-get install chromium); "
-                    "the browser tests need a real browser", pytrace=False)
-    return pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
 
 
 def open_dashboard(browser, url: str, timeout_s: float = 40.0):
@@ -97,10 +86,11 @@ def flight():
     try:
         f.probe.wait_for("setpoint", lambda m: m.seq > 50, timeout_s=60)
         with sync_playwright() as pw:
-            browser = launch_chromium(pw)
+            browser = launch(pw)
             try:
                 f.browser = browser
                 f.page = open_dashboard(browser, f.url)
+                renice_browsers()
                 yield f
             finally:
                 browser.close()
