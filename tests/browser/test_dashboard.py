@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from runtime.client import get_params
-from runtime.schema import EventMsg, Keys, NetworkMsg, RecordingMsg, TelemetryMsg
+from runtime.schema import EventMsg, Keys, NetworkMsg, RecordingMsg, StateMsg, TelemetryMsg
 from tests.browser.chromium import launch, renice_browsers
 from tests.busutil import REPO, Collector, children_of, free_port, neso, peer, session, stop
 
@@ -250,6 +250,36 @@ def test_land_and_take_off_buttons_move_the_simulated_vehicle(flight):
     page.get_by_role("button", name="Take off", exact=True).click()
     wait_text(page, r"accepted · takeoff on uav1")
     flight.probe.wait_for("truth", lambda m: m.pos_enu_m[2] > 0.8 and not m.on_ground, timeout_s=15)
+
+
+def test_scenario_switch_restarts_the_simulated_world_without_restarting_processes(flight):
+    page = flight.page
+    tab(page, "Control")
+    pids = sorted(children_of(flight.proc.pid))
+    choose(page, "Scenario", "slope")
+    page.get_by_role("button", name="Restart world with scenario").click()
+    wait_text(page, r"accepted · scenario ood_slope on uav1")
+    flight.probe.wait_for("truth", lambda m: m.scenario == "ood_slope", timeout_s=5)
+    flight.probe.wait_for("setpoint", lambda m: m.seq > 50 and flight.probe.get("truth")[-1].scenario == "ood_slope",
+                          timeout_s=10)
+    tab(page, "Flight")
+    wait_text(page, r"flight 2\)")
+    assert sorted(children_of(flight.proc.pid)) == pids  # same processes
+
+
+def test_vehicle_selector_lists_every_vehicle_on_the_bus(flight):
+    page = flight.page
+    other = Keys("uav9")
+    for k in range(5):
+        flight.s.put(other.topic("state"), StateMsg(
+            seq=k, stamp_s=time.monotonic(), t_s=0.02 * k, pos_enu_m=(2.0, 1.0, 0.5), vel_enu_mps=(0.0, 0.0, 0.0),
+            roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, source="mocap").to_bytes())
+    time.sleep(0.5)
+    choose(page, "Vehicle", "uav9")
+    wait_text(page, r"uav9 · idle")
+    wait_text(page, r"x \+2\.000 y \+1\.000 z 0\.500 m")
+    choose(page, "Vehicle", "uav1")
+    wait_text(page, r"uav1 · (hover|transit|takeoff)")
 
 
 def test_px4_recorder_and_network_reports_are_shown_when_present(flight):
