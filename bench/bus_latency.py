@@ -199,7 +199,7 @@ def pipeline(rate_hz: float, flight_s: float) -> PipelineRun:
         probe.declare_subscriber(keys.health("source"), on_health)
         run_s = DISCARD_S + flight_s
         proc = neso("up", "--hub", hub, "--rate", f"{rate_hz:g}", "--duration", f"{run_s:g}",
-                    "--scenario", "nominal_landing", "--mission", "hover")
+                    "--scenario", "nominal_landing", "--mission", "hover", "--no-dashboard")
         try:
             output = proc.communicate(timeout=run_s + 30.0)[0]
         except subprocess.TimeoutExpired:

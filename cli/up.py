@@ -69,8 +69,9 @@ def build_specs(args) -> list[ProcessSpec]:
                 argv += ("--low-latency",)
             specs.append(ProcessSpec(role.name, argv))
             continue
-        if not role.per_vehicle:
-            specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0)))
+        if not role.per_vehicle:  # optional roles (enabled_by) are never the reason a flight stops
+            specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0),
+                                     essential=not role.enabled_by))
             continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"

@@ -24,6 +24,13 @@ WATCHED = ("state", "truth", "estimate", "setpoint", "reference", "telemetry", "
 PER_SERVICE = {"health": HealthMsg, "params": ParamStateMsg, "event": EventMsg}
 
 
+PORT_RETRY_S = 5.0
+
+
+class PortTaken(OSError):
+    """The dashboard's port is in use by something else."""
+
+
 class BusFacade:
     """Parameter sets and commands on worker threads; replies come back through callbacks."""
 
@@ -122,8 +129,9 @@ class Dashboard:
         if self.server.get_port() != port:
             actual = self.server.get_port()
             self.server.stop()
+            self.facade.close()
             self.observer.close()
-            raise OSError(f"port {port} is taken (viser would have moved to {actual}): choose --port")
+            raise PortTaken(f"port {port} is taken (viser would have moved to {actual}): choose --port")
         self.view = DashboardView(self.server, self.model, self.lock, self.facade, phys_per_norm=phys_per_norm,
                                   default_vehicle=default_vehicle)
         self.period_s = 1.0 / ui_rate_hz
@@ -220,10 +228,28 @@ def run(args, bus) -> int:
     if args.nice:
         os.nice(args.nice)
     factor = physical_factor(args.network)
-    dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
-                     phys_per_norm=factor, default_vehicle=args.vehicle)
+    stopping = threading.Event()
+    holder: list[Dashboard] = []
+
+    def on_signal(*_) -> None:
+        stopping.set()
+        if holder:
+            holder[0].stop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: dash.stop())
+        signal.signal(sig, on_signal)
+    while not stopping.is_set():
+        try:
+            dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
+                             phys_per_norm=factor, default_vehicle=args.vehicle)
+            break
+        except PortTaken as exc:  # wait for it rather than crash-loop: the flight never depends on the page
+            print(f"[dashboard] {exc}; trying again in {PORT_RETRY_S:g} s", flush=True)
+            stopping.wait(PORT_RETRY_S)
+    else:
+        return 0
+    holder.append(dash)
+    if stopping.is_set():
+        dash.stop()
     print(f"[dashboard] serving http://{args.host}:{args.port} (L_N physical/normalised "
           f"{'unknown' if factor is None else f'{factor:.4g}'})", flush=True)
     try:

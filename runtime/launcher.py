@@ -33,6 +33,7 @@ class ProcessSpec:
     name: str
     argv: tuple[str, ...]
     finishes: bool = False  # its clean exit ends the run (instead of being restarted)
+    essential: bool = True  # False: when it keeps crashing, give up on it alone and let the rest run
 
 
 class Supervisor:
@@ -79,6 +80,12 @@ class Supervisor:
                     self.echo(f"{spec.name} finished")
                     self.finished.set()
                     return
+                if self.restarts[spec.name] >= self.max_restarts and not spec.essential:
+                    if self.restarts[spec.name] == self.max_restarts:
+                        self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: "
+                                  "giving up on it (not essential: the others go on)")
+                        self.restarts[spec.name] += 1
+                    continue
                 if self.restarts[spec.name] >= self.max_restarts:
                     self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: giving up")
                     self.exit_code = 1

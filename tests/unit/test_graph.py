@@ -81,5 +81,6 @@ def test_a_per_bus_role_runs_once_for_all_vehicles_and_can_be_turned_off():
     assert [n for n in specs if n.endswith("dashboard")] == ["dashboard"]
     argv = specs["dashboard"].argv
     assert argv[argv.index("--port") + 1] == "8181" and argv[argv.index("--host") + 1] == "127.0.0.1"
+    assert not specs["dashboard"].essential and specs["a/controller"].essential  # a page never stops a flight
     off = build_parser().parse_args(["up", "--no-dashboard"])
     assert "dashboard" not in [s.name for s in build_specs(off)]
