@@ -259,6 +259,7 @@ class FleetModel:
         self.window_s = window_s
         self.vehicles: dict[str, VehicleModel] = {}
         self.rejected = 0
+        self.dropped = 0  # samples the watcher's inbox let go (it was full)
         self.last_rejection = ""
 
     def vehicle(self, name: str) -> VehicleModel:

@@ -158,6 +158,7 @@ class Dashboard:
         items = self.observer.drain()
         now = time.monotonic()
         with self.lock:
+            self.model.dropped = self.observer.dropped
             for kind, key, payload, received in items:
                 decode_into(self.model, kind, key, payload, received)
                 if kind == "alive" and payload == b"1":

@@ -376,8 +376,8 @@ class DashboardView:
             stale = sh.stale(now_s)
             rows.append(f"| {name} | {'yes' if sh.alive else '**NO**'} | {_fmt(h.rate_hz if h else math.nan, '.1f')} Hz | "
                         f"{'⚠ ' if stale else ''}{_fmt(max(h.staleness_s.values(), default=-1.0) * 1e3 if h else math.nan, '.0f')} ms | "
-                        f"{int(sum(h.rejected.values())) if h else '–'} | {(h.status if h else 'no report')[:60]} |")
-        rows.append(f"\nDashboard: {self.model.rejected} rejected messages"
+                        f"{int(sum(h.rejected.values())) if h else '–'} | {(h.status if h else 'no report')[:100]} |")
+        rows.append(f"\nDashboard: {self.model.rejected} rejected messages, {self.model.dropped} dropped (inbox full)"
                     + (f" (last: {self.model.last_rejection[:120]})" if self.model.rejected else ""))
         self._set(self.health, "\n".join(rows))
         tel = v.latest.get("telemetry")

@@ -101,6 +101,8 @@ class ControllerCore:
                 return False, f"refused: disarm only on the ground (segment {self.mission.segment})"
             self.armed = False
             return True, "disarmed"
+        if name in ("hold", "abort") and self.mission.idle:
+            return False, f"refused: on the ground (idle), nothing to {name}"
         if name in _NEEDS_ARMING and not self.armed:
             return False, f"refused: {name} needs the vehicle armed (send arm first)"
         self._pending_command = (name, dict(args))
@@ -276,7 +278,7 @@ def run(args, bus) -> int:
     node.subscribe("estimate", on_estimate)
     node.on_command(core.command)
     node.status_hook = lambda: ("flying on the LOCAL ESO (estimate stale)" if core.using_local else
-                                f"ok, segment {core.mission.segment}")
+                                f"ok, {'armed' if core.armed else 'disarmed'}, segment {core.mission.segment}")
 
     def watchdog(node: Node) -> None:
         period = max(config.stale_timeout_s / 3.0, 0.001)

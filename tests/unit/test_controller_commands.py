@@ -63,3 +63,11 @@ def test_abort_lands_from_where_the_vehicle_is():
     assert ref.segment == "land"
     np.testing.assert_allclose(ref.pos_enu_m, (0.3, -0.2, 0.8), atol=1e-9)
     assert any(level == "warning" and "abort" in text for level, text in core.events)
+
+
+def test_hold_and_abort_on_the_ground_are_refused_with_the_reason():
+    core = ControllerCore(ControllerConfig(mission="idle"))
+    step(core, 0, 0.0)
+    for name in ("hold", "abort"):
+        ok, why = core.command(name, {})
+        assert not ok and "on the ground" in why
