@@ -51,7 +51,7 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     elif role == "controller":
         specific = ["--mission", args.mission, "--rate", str(args.rate)]
     elif role == "dashboard":
-        specific = ["--host", args.dashboard_host, "--port", str(args.dashboard_port)]
+        specific = ["--host", args.dashboard_host, "--port", str(args.dashboard_port), "--nice", "0"]  # launcher nices it
         if args.network is not None:
             specific += ["--network", args.network]
     return python_module_argv("cli.main", "run", role, *common, *specific)
@@ -71,7 +71,7 @@ def build_specs(args) -> list[ProcessSpec]:
             continue
         if not role.per_vehicle:  # optional roles (enabled_by) are never the reason a flight stops
             specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0),
-                                     essential=not role.enabled_by))
+                                     essential=not role.enabled_by, nice=10 if role.enabled_by else 0))
             continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"

@@ -359,7 +359,7 @@ def test_kill_the_dashboard_mid_flight_the_flight_goes_on_and_a_restart_picks_it
                                  "max_setpoint_gap_ms_after": round(gap_after * 1e3, 1)}
     print("setpoints around kill -9 of the dashboard:", FIGURES["dashboard_kill"])
     assert gap_after < max(0.25, 1.5 * gap_before), (gap_before, gap_after)  # never stopped (a period is 20 ms)
-    assert skipped_after <= max(5, 3 * skipped_before)  # no worse than the loaded machine already was
+    assert skipped_after <= max(10, 3 * skipped_before)  # no worse than the loaded machine already was
     # the supervisor restarts it; a fresh page shows the same flight going on
     deadline = killed_at + 40
     while True:

@@ -82,5 +82,6 @@ def test_a_per_bus_role_runs_once_for_all_vehicles_and_can_be_turned_off():
     argv = specs["dashboard"].argv
     assert argv[argv.index("--port") + 1] == "8181" and argv[argv.index("--host") + 1] == "127.0.0.1"
     assert not specs["dashboard"].essential and specs["a/controller"].essential  # a page never stops a flight
+    assert specs["dashboard"].nice == 10 and specs["a/controller"].nice == 0
     off = build_parser().parse_args(["up", "--no-dashboard"])
     assert "dashboard" not in [s.name for s in build_specs(off)]
