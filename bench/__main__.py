@@ -5,7 +5,7 @@ tick; network inference at batch 1; and the whole ``neso experiment paper`` pipe
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
-Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~75 s).
+Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
 Pass ``--quick`` to skip the paper pipeline and shorten the bus section (10 s flights, 3 s floors).
 """
 from __future__ import annotations
@@ -68,7 +68,7 @@ def main(argv: list[str]) -> int:
     print(flush=True)
     from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows
 
-    _print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=8.0 if quick else 20.0))
+    _print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
     return 0
 
 
