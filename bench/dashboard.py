@@ -12,7 +12,7 @@
   It includes the dashboard's render period (plots and panels at 10 Hz) and the browser's
   frame rate (software WebGL here).
 
-Chromium is kept at nice 19 (:func:`tests.browser.chromium.renice_browsers` every 0.25 s, since
+Chromium is kept at nice 19 (:class:`tests.browser.chromium.KeptReniced`: every 0.25 s, since
 Chromium run as root lifts some of its threads back to nice −8 and 0): on an arena the operator's
 browser is on another machine; here it shares the 2 cores with the loop. (Under SCHED_IDLE the
 pages did not load at all while other work kept the machine busy.)
@@ -28,7 +28,7 @@ import numpy as np
 
 from runtime.bus import BusConfig
 from runtime.schema import EventMsg, Keys, SetpointMsg
-from tests.browser.chromium import launch, renice_browsers
+from tests.browser.chromium import KeptReniced, launch
 from tests.busutil import children_of, free_port, neso, session, stop
 
 RATE_HZ = 50.0
@@ -78,13 +78,11 @@ def _fly(flight_s: float, *, browsers: int, dashboard: bool | None = None) -> di
                     browser = launch(pw)
                     try:
                         pages = [_open(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
-                        keep_reniced = threading.Event()
-                        threading.Thread(target=_keep_reniced, args=(keep_reniced,), daemon=True).start()
-                        cpu0 = _cpu_s(_dashboard_pid(proc.pid))
-                        _measure(flight_s, measuring)
-                        out["dashboard_cpu"] = (_cpu_s(_dashboard_pid(proc.pid)) - cpu0) / (WARMUP_S + flight_s)
-                        out["dom_s"] = _bus_to_dom(probe, keys, pages[0])
-                        keep_reniced.set()
+                        with KeptReniced():
+                            cpu0 = _cpu_s(_dashboard_pid(proc.pid))
+                            _measure(flight_s, measuring)
+                            out["dashboard_cpu"] = (_cpu_s(_dashboard_pid(proc.pid)) - cpu0) / (WARMUP_S + flight_s)
+                            out["dom_s"] = _bus_to_dom(probe, keys, pages[0])
                     finally:
                         browser.close()
             else:
@@ -111,12 +109,6 @@ def _pump(proc, lines: list[str]) -> None:
             lines.append(line)
     except ValueError:  # the pipe was closed by stop()
         pass
-
-
-def _keep_reniced(done: threading.Event) -> None:
-    """Chromium (run as root) lifts some of its threads back to nice −8 and 0: push them down again."""
-    while not done.wait(0.25):
-        renice_browsers()
 
 
 def _dashboard_pid(up_pid: int) -> int:

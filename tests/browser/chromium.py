@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import threading
 
 import pytest
 
@@ -56,3 +57,24 @@ def renice_browsers(nice: int = BROWSER_NICE) -> int:
         except (FileNotFoundError, ProcessLookupError, PermissionError):
             pass
     return n
+
+
+class KeptReniced:
+    """``with KeptReniced():`` re-applies :func:`renice_browsers` every ``period_s``: Chromium, run
+    as root, lifts some of its threads back to nice −8 and 0 by itself."""
+
+    def __init__(self, period_s: float = 0.25) -> None:
+        self.period_s = period_s
+        self._done = threading.Event()
+
+    def _run(self) -> None:
+        while not self._done.wait(self.period_s):
+            renice_browsers()
+
+    def __enter__(self) -> "KeptReniced":
+        renice_browsers()
+        threading.Thread(target=self._run, name="renice-chromium", daemon=True).start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._done.set()

@@ -20,7 +20,7 @@ import pytest
 
 from runtime.client import get_params
 from runtime.schema import EventMsg, Keys, NetworkMsg, RecordingMsg, StateMsg, TelemetryMsg
-from tests.browser.chromium import launch, renice_browsers
+from tests.browser.chromium import KeptReniced, launch
 from tests.busutil import REPO, Collector, children_of, free_port, neso, peer, session, stop
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
@@ -90,8 +90,8 @@ def flight():
             try:
                 f.browser = browser
                 f.page = open_dashboard(browser, f.url)
-                renice_browsers()
-                yield f
+                with KeptReniced():
+                    yield f
             finally:
                 browser.close()
     finally:
