@@ -24,8 +24,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, NetworkMsg, ParamStateMsg, RecordingMsg, ReferenceMsg,
-                            SetpointMsg, StateMsg, TelemetryMsg, TruthMsg)
+from runtime.schema import EstimateMsg, EventMsg, HealthMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, TruthMsg
 
 # one row per sample: these columns, NaN until the message that fills them arrives
 COLUMNS = ("t", "x", "y", "z", "ref_x", "ref_y", "ref_z", "f_n_z", "df_hat_z", "f_hat_z", "truth_dist_z", "thrust_n")
@@ -283,8 +282,3 @@ class FleetModel:
             v.ingest_alive(service, bool(msg))
         else:
             v.ingest(kind, msg, received_s)
-
-
-TOPIC_TYPES = {"state": StateMsg, "truth": TruthMsg, "estimate": EstimateMsg, "setpoint": SetpointMsg,
-               "reference": ReferenceMsg, "telemetry": TelemetryMsg, "recording": RecordingMsg,
-               "network": NetworkMsg, "health": HealthMsg, "params": ParamStateMsg, "event": EventMsg}

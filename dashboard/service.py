@@ -17,10 +17,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
-from runtime.schema import (EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError, TOPICS, vehicle_of)
+from runtime.graph import role as graph_role
+from runtime.schema import EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError, TOPICS, vehicle_of
 
 Reply = Callable[[bool, str], None]
-WATCHED = ("state", "truth", "estimate", "setpoint", "reference", "telemetry", "recording", "network")
+WATCHED = graph_role("dashboard").watches  # the streams of every vehicle, declared in runtime/graph.py
 PER_SERVICE = {"health": HealthMsg, "params": ParamStateMsg, "event": EventMsg}
 
 

@@ -54,6 +54,7 @@ class Supervisor:
 
     def _spawn(self, spec: ProcessSpec) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+
         def setup() -> None:  # in the child between fork and exec
             _die_with_parent()
             if spec.nice:
