@@ -10,6 +10,7 @@ the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
 (:mod:`bench.gateway`, ~25 s).
+Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
 Pass ``--quick`` to skip the paper pipeline and shorten every section.
 """
 from __future__ import annotations
@@ -83,6 +84,11 @@ def main(argv: list[str]) -> int:
 
     print(flush=True)
     _print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
+
+    print(flush=True)
+    from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows
+
+    _print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
     return 0
 
 

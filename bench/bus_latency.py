@@ -200,7 +200,7 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = ()) 
         probe.declare_subscriber(keys.health("source"), on_health)
         run_s = DISCARD_S + flight_s
         proc = neso("up", "--hub", hub, "--rate", f"{rate_hz:g}", "--duration", f"{run_s:g}",
-                    "--scenario", "nominal_landing", "--mission", "hover", *extra_args)
+                    "--scenario", "nominal_landing", "--mission", "hover", "--no-dashboard", *extra_args)
         try:
             output = proc.communicate(timeout=run_s + 30.0)[0]
         except subprocess.TimeoutExpired:
@@ -246,7 +246,7 @@ def bus_latency_rows(flight_s: float, floor_s: float) -> list[tuple[str, ...]]:
                          f"> 1 period: {sum(r > period_s for r in rtt_s)}; lost: {n - len(rtt_s)}"))
             if rtt_s:
                 p99_us[f"{name} {rate_hz:g}"] = float(np.percentile(rtt_s, 99) * 1e6)
-        run = pipeline(rate_hz, flight_s)
+        run = pipeline(rate_hz, flight_s, ("--no-record", "--no-trainer"))  # the control loop alone
         if run.latency_s:
             p99_us[f"pipeline {rate_hz:g}"] = float(np.percentile(run.latency_s, 99) * 1e6)
         source = "?" if run.source_misses is None else str(run.source_misses)

@@ -34,6 +34,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--recordings-dir", default="out/recordings", help="where the recorder writes flights")
     p.add_argument("--no-trainer", action="store_false", dest="trainer", help="do not start the trainer service")
     p.add_argument("--registry", default="networks/registry", help="where the trainer stores networks")
+    p.add_argument("--no-dashboard", action="store_false", dest="dashboard", help="do not start the web dashboard")
+    p.add_argument("--dashboard-host", default="127.0.0.1", help="dashboard address (default loopback only)")
+    p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
 
 
 def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
@@ -64,6 +67,10 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
         if args.mavlink_log:
             specific += ["--mavlink-log", args.mavlink_log if index == 0 else f"{args.mavlink_log}.{vehicle}"]
+    elif role == "dashboard":
+        specific = ["--host", args.dashboard_host, "--port", str(args.dashboard_port), "--nice", "0"]  # launcher nices it
+        if args.network is not None:
+            specific += ["--network", args.network]
     return python_module_argv("cli.main", "run", role, *common, *specific)
 
 
@@ -89,6 +96,10 @@ def build_specs(args) -> list[ProcessSpec]:
                 argv += ("--low-latency",)
             specs.append(ProcessSpec(role.name, argv))
             continue
+        if not role.per_vehicle:  # optional roles (enabled_by) are never the reason a flight stops
+            specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0),
+                                     essential=not role.enabled_by, nice=10 if role.enabled_by else 0))
+            continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
             finishes = role.name == "source" and args.duration > 0
@@ -107,7 +118,10 @@ def run(args) -> int:
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
     print("  live parameters:  neso params get estimator | neso params set estimator pathway=eso lipschitz_bound=0.5",
           flush=True)
-    print("  missions:         neso cmd controller landing_test | takeoff | hover | lemniscate | land", flush=True)
+    print("  missions:         neso cmd controller landing_test | takeoff | hover | lemniscate | land | arm | hold | abort",
+          flush=True)
+    if args.dashboard:
+        print(f"  dashboard:        http://{args.dashboard_host}:{args.dashboard_port}", flush=True)
     print("  stop:             Ctrl-C", flush=True)
     supervisor.start()
     return supervisor.run()

@@ -25,6 +25,7 @@ class Role:
     bus_role: str = "peer"  # "router" for the hub
     per_vehicle: bool = True  # False: one process for the whole bus (it watches every vehicle)
     enabled_by: str = ""  # `neso up` starts it only when this boolean option is set ("": always)
+    watches: tuple[str, ...] = ()  # topics a watcher shows when someone publishes them (of every vehicle)
 
 
 def _topics(*names: str) -> dict[str, type[Message]]:
@@ -48,6 +49,9 @@ ROLES: tuple[Role, ...] = (
     Role("px4_gateway", "services.px4_gateway",
          "setpoints → PX4 offboard attitude through MAVSDK; vehicle telemetry back; mocap → external vision",
          publishes=_topics("telemetry"), subscribes=_topics("setpoint", "state"), enabled_by="mavlink_vehicle"),
+    Role("dashboard", "dashboard.service", "operator's web dashboard (viser): watches every vehicle, steers by "
+         "parameters and commands", publishes={}, subscribes={}, per_vehicle=False, enabled_by="dashboard",
+         watches=("state", "truth", "estimate", "setpoint", "reference", "telemetry", "recording", "network")),
 )
 
 GRAPH: dict[str, Role] = {role.name: role for role in ROLES}

@@ -33,6 +33,8 @@ class ProcessSpec:
     name: str
     argv: tuple[str, ...]
     finishes: bool = False  # its clean exit ends the run (instead of being restarted)
+    essential: bool = True  # False: when it keeps crashing, give up on it alone and let the rest run
+    nice: int = 0  # CPU niceness from the start (its imports included): >0 for what must not slow the loop
 
 
 class Supervisor:
@@ -52,8 +54,13 @@ class Supervisor:
 
     def _spawn(self, spec: ProcessSpec) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+
+        def setup() -> None:  # in the child between fork and exec
+            _die_with_parent()
+            if spec.nice:
+                os.nice(spec.nice)
         proc = subprocess.Popen(list(spec.argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
-                                preexec_fn=_die_with_parent, text=True, bufsize=1)
+                                preexec_fn=setup, text=True, bufsize=1)
         self.procs[spec.name] = proc
         threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True).start()
 
@@ -79,6 +86,12 @@ class Supervisor:
                     self.echo(f"{spec.name} finished")
                     self.finished.set()
                     return
+                if self.restarts[spec.name] >= self.max_restarts and not spec.essential:
+                    if self.restarts[spec.name] == self.max_restarts:
+                        self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: "
+                                  "giving up on it (not essential: the others go on)")
+                        self.restarts[spec.name] += 1
+                    continue
                 if self.restarts[spec.name] >= self.max_restarts:
                     self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: giving up")
                     self.exit_code = 1

@@ -1,5 +1,10 @@
 """``controller``: mission + state + f̂ → attitude setpoint, with a local ESO when f̂ goes stale.
 
+Commands: the missions of :mod:`neso.mission` plus ``arm`` (allow a take-off: a controller
+started with ``--mission idle`` is disarmed, one started flying is armed), ``disarm`` (only
+on the ground), ``hold`` (stop where the vehicle is: the reference freezes at the measured
+position and the PD brakes the vehicle to it) and ``abort`` (land now from where it is).
+
 The step object (:class:`ControllerCore`) pairs each state sample with the estimate for the
 same ``seq`` and runs the position controller on them (the tick order of
 :func:`sim.runner.fly`). It also runs its own plain ESO on every sample (a few µs): if the
@@ -25,6 +30,9 @@ from runtime.params import Param, ParamSet
 from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 _KEEP = 64  # samples of unmatched states/estimates kept
+EXTRA_COMMANDS = ("arm", "disarm", "hold", "abort")
+ALL_COMMANDS = COMMANDS + EXTRA_COMMANDS
+_NEEDS_ARMING = ("takeoff", "hover", "landing_test", "lemniscate")
 
 
 @dataclass(frozen=True)
@@ -79,11 +87,24 @@ class ControllerCore:
         self._pending_command: tuple[str, dict] | None = None
         self._pending_local = np.zeros(3)
         self._last_output: list = []
+        self.armed = config.mission != "idle"
 
     # -- operator inputs (applied at the next sample) ---------------------------------------
     def command(self, name: str, args: dict) -> tuple[bool, str]:
-        if name not in COMMANDS:
-            return False, f"unknown mission command {name!r}; choose one of {list(COMMANDS)}"
+        if name not in ALL_COMMANDS:
+            return False, f"unknown mission command {name!r}; choose one of {list(ALL_COMMANDS)}"
+        if name == "arm":
+            self.armed = True
+            return True, "armed: take-off allowed"
+        if name == "disarm":
+            if not self.mission.idle:
+                return False, f"refused: disarm only on the ground (segment {self.mission.segment})"
+            self.armed = False
+            return True, "disarmed"
+        if name in ("hold", "abort") and self.mission.idle:
+            return False, f"refused: on the ground (idle), nothing to {name}"
+        if name in _NEEDS_ARMING and not self.armed:
+            return False, f"refused: {name} needs the vehicle armed (send arm first)"
         self._pending_command = (name, dict(args))
         return True, f"{name} starts at the next sample"
 
@@ -164,7 +185,18 @@ class ControllerCore:
         if self._pending_command is not None:
             name, _ = self._pending_command
             self._pending_command = None
-            self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
+            if name == "hold":
+                if not self.mission.idle:
+                    self.mission.idle = True  # forget the old reference: hold where the vehicle is
+                    self.mission.start("hover", p.state.t_s, p.meas.pos_enu_m)
+                    self.mission._segments[0].name = "hold"
+            elif name == "abort":
+                if not self.mission.idle:
+                    self.mission.idle = True  # land from where the vehicle is, not from the reference
+                    self.mission.start("land", p.state.t_s, p.meas.pos_enu_m)
+                    self.events.append(("warning", "abort: landing now"))
+            else:
+                self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
         f_hat = self._pending_local if local_f_hat else np.array(self._estimates[p.state.seq].f_hat_mps2)
         ref = self.mission.reference(p.state.t_s)
         if ref is not None and self.mission.landed(p.meas.pos_enu_m[2]):
@@ -246,7 +278,7 @@ def run(args, bus) -> int:
     node.subscribe("estimate", on_estimate)
     node.on_command(core.command)
     node.status_hook = lambda: ("flying on the LOCAL ESO (estimate stale)" if core.using_local else
-                                f"ok, segment {core.mission.segment}")
+                                f"ok, {'armed' if core.armed else 'disarmed'}, segment {core.mission.segment}")
 
     def watchdog(node: Node) -> None:
         period = max(config.stale_timeout_s / 3.0, 0.001)

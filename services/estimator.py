@@ -11,6 +11,8 @@ Live parameters:
   the loaded network with its layers scaled down until its exact certificate meets the bound.
   A bound above the one the loaded network was trained to, with no network for it on disk, is
   refused: scaling can only flatten a network. The broadcast says which was done.
+- ``omega_o_rps``: shown so watchers (the dashboard's certificate) know the observer bandwidth;
+  read-only (its range is the start-up value), since it is start-up config (``--omega-o``).
 
 Network hot swap (commands on ``neso/<v>/cmd/estimator``; each replies ok=False with the reason
 when refused, and a refusal leaves the active network flying):
@@ -74,6 +76,8 @@ def estimator_params(config: EstimatorConfig, bound: float) -> tuple[Param, ...]
     return (
         Param("pathway", config.pathway, str, "which pathways make f̂", choices=PATHWAYS),
         Param("lipschitz_bound", bound, float, "L_N of the network flown (normalised units)", lo=1e-6, hi=1e3),
+        Param("omega_o_rps", config.omega_o_rps, float, "observer bandwidth (start-up config: read-only)", "rad/s",
+              lo=config.omega_o_rps, hi=config.omega_o_rps),
     )
 
 

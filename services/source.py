@@ -8,6 +8,11 @@ with the newest setpoint and publishes the state (and the truth). Two ways to ru
 - lockstep: sample k+1 is computed only once setpoint k has arrived, so a run is
   deterministic and reproduces :func:`sim.runner.fly` exactly (same seed, same network).
 
+Command ``scenario`` (args ``{"name": <scenario>}``, simulator in real time only): the world
+restarts with that scenario at the next period, without any process restarting. The new world
+is a new flight: ``seq`` and the source's clock start again at 0, which is how the estimator
+and the controller recognise a new flight (they re-initialise and fly its start mission).
+
 Motion capture (:class:`MocapSource`): frames from the ``motioncapture`` library (OptiTrack,
 Vicon, Qualisys, VRPN, ... as Crazyswarm2 uses it), the configured rigid body mapped into
 ENU, velocity from a filtered finite difference, published at the control rate. Setpoints
@@ -19,7 +24,7 @@ import argparse
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -216,8 +221,24 @@ def _run_sim(node, config: SourceConfig) -> None:
         arrived.notify_all()
 
     node.subscribe("setpoint", on_setpoint)
-    node.status_hook = lambda: (f"{'lockstep' if config.lockstep else 'real time'}, t={core.sim.t_s:.2f} s, "
-                                f"sample {core.seq}, deadline misses {misses[0]}")
+    node.status_hook = lambda: (f"{'lockstep' if config.lockstep else 'real time'}, scenario {core.config.scenario}, "
+                                f"t={core.sim.t_s:.2f} s, sample {core.seq}, deadline misses {misses[0]}")
+    next_scenario: list[str] = []
+
+    def on_command(name: str, args: dict) -> tuple[bool, str]:
+        from sim.scenarios import SCENARIOS
+
+        if name != "scenario":
+            return False, f"unknown command {name!r}; the sim source takes: scenario"
+        wanted = args.get("name")
+        if wanted not in SCENARIOS:
+            return False, f"refused: scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
+        if config.lockstep:
+            return False, "refused: a lockstep flight cannot switch scenario (restart it)"
+        next_scenario[:] = [wanted]
+        return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
+
+    node.on_command(on_command)
     if config.lockstep:
         _wait_for_services(node, config.wait_for)
     n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
@@ -225,7 +246,10 @@ def _run_sim(node, config: SourceConfig) -> None:
     next_tick = time.monotonic()
     while not node.stopping and (n_total is None or core.seq + 1 < n_total):
         with node.lock:
-            if not config.lockstep and core.seq >= 0 and core.setpoint_seq != core.seq:
+            if next_scenario:
+                core = SimSource(replace(core.config, scenario=next_scenario.pop()))
+                node.event("info", f"world restarted with scenario {core.config.scenario}")
+            elif not config.lockstep and core.seq >= 0 and core.setpoint_seq != core.seq:
                 misses[0] += 1
             state, truth = core.step()
             put_state(state)

@@ -35,7 +35,8 @@ def max_force_step_n(setpoints) -> float:
 class Flight:
     def __init__(self):
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint)
+        self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint,
+                         "--no-dashboard")
         self.output: list[str] = []
         threading.Thread(target=self._pump, daemon=True).start()
         self._session_cm = session(peer(self.endpoint))

@@ -23,7 +23,7 @@ def test_lockstep_processes_reproduce_the_in_process_runner():
         token = s.liveliness().declare_token(probe.keys.alive("probe"))
         proc = neso("up", "--lockstep", "--duration", str(duration_s), "--scenario", "nominal_landing",
                     "--mission", "landing_test", "--seed", str(seed), "--network", NETWORK, "--hub", endpoint,
-                    "--wait-for", "probe")
+                    "--wait-for", "probe", "--no-dashboard")
         try:
             proc.wait(timeout=120)
         finally:

@@ -85,3 +85,14 @@ def test_the_px4_gateway_runs_only_with_the_mavlink_vehicle_and_both_share_one_p
     assert gateway[gateway.index("--mavlink") + 1] == "udpin://127.0.0.1:15000"
     assert source[source.index("--link") + 1] == "mavlink"
     assert source[source.index("--mavlink-out") + 1] == "udpout:127.0.0.1:15000"
+
+def test_a_per_bus_role_runs_once_for_all_vehicles_and_can_be_turned_off():
+    args = build_parser().parse_args(["up", "--name", "a", "--name", "b", "--dashboard-port", "8181"])
+    specs = {s.name: s for s in build_specs(args)}
+    assert [n for n in specs if n.endswith("dashboard")] == ["dashboard"]
+    argv = specs["dashboard"].argv
+    assert argv[argv.index("--port") + 1] == "8181" and argv[argv.index("--host") + 1] == "127.0.0.1"
+    assert not specs["dashboard"].essential and specs["a/controller"].essential  # a page never stops a flight
+    assert specs["dashboard"].nice == 10 and specs["a/controller"].nice == 0
+    off = build_parser().parse_args(["up", "--no-dashboard"])
+    assert "dashboard" not in [s.name for s in build_specs(off)]

@@ -1,0 +1,261 @@
+"""``dashboard``: the operator's web page (viser) for every vehicle on the bus.
+
+One process for the whole bus (role ``dashboard``, ``per_vehicle=False``). Zenoh callbacks
+only enqueue raw samples (:class:`runtime.observer.Observer`); one UI thread drains them
+every ``1/ui_rate`` s, decodes and ingests them into :class:`dashboard.model.FleetModel`,
+moves the vehicle at that rate and re-renders plots and panels at half of it. Controls go
+through :class:`BusFacade`, which runs the parameter set or command on a worker thread and
+hands the reply (or the refusal) back to the page. The dashboard publishes nothing on the
+streams: killing it changes nothing for the flight, and a restarted one picks the flight up
+from the next samples plus a parameter get of every live service.
+"""
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+from runtime.graph import role as graph_role
+from runtime.schema import EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError, TOPICS, vehicle_of
+
+Reply = Callable[[bool, str], None]
+WATCHED = graph_role("dashboard").watches  # the streams of every vehicle, declared in runtime/graph.py
+PER_SERVICE = {"health": HealthMsg, "params": ParamStateMsg, "event": EventMsg}
+
+
+PORT_RETRY_S = 5.0
+
+
+class PortTaken(OSError):
+    """The dashboard's port is in use by something else."""
+
+
+class BusFacade:
+    """Parameter sets and commands on worker threads; replies come back through callbacks."""
+
+    def __init__(self, session, *, timeout_s: float = 2.0, workers: int = 3) -> None:
+        self.session = session
+        self.timeout_s = timeout_s
+        self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dashboard-bus")
+
+    def _submit(self, fn: Callable[[], tuple[bool, str]], reply: Reply) -> None:
+        def run() -> None:
+            try:
+                ok, text = fn()
+            except Exception as exc:  # no reply, or the service is gone: say so on the page
+                ok, text = False, f"{type(exc).__name__}: {exc}"
+            try:
+                reply(ok, text)
+            except Exception as exc:
+                print(f"[dashboard] showing a reply failed: {exc}", flush=True)
+        self.pool.submit(run)
+
+    def set_params(self, vehicle: str, service: str, values: dict, reply: Reply) -> None:
+        from runtime.client import set_params
+
+        def go() -> tuple[bool, str]:
+            r = set_params(self.session, Keys(vehicle), service, values, timeout_s=self.timeout_s)
+            return r.ok, r.error if not r.ok else f"{service} will apply {values}"
+        self._submit(go, reply)
+
+    def guarded_set(self, vehicle: str, service: str, values: dict, guard: Callable[[], tuple[bool, str]],
+                    reply: Reply) -> None:
+        """Run ``guard`` (e.g. the certificate) first; send only if it allows, else reply its refusal."""
+        from runtime.client import set_params
+
+        def go() -> tuple[bool, str]:
+            allowed, why = guard()
+            if not allowed:
+                return False, why
+            r = set_params(self.session, Keys(vehicle), service, values, timeout_s=self.timeout_s)
+            return r.ok, (r.error if not r.ok else f"{service} will apply {values} · certificate {why}")
+        self._submit(go, reply)
+
+    def command(self, vehicle: str, service: str, name: str, args: dict, reply: Reply) -> None:
+        from runtime.client import command
+
+        def go() -> tuple[bool, str]:
+            r = command(self.session, Keys(vehicle), service, name, args, timeout_s=self.timeout_s)
+            return r.ok, r.message
+        self._submit(go, reply)
+
+    def get_params(self, vehicle: str, service: str, done: Callable[[dict], None]) -> None:
+        from runtime.client import get_params
+
+        def go() -> None:
+            try:
+                done(get_params(self.session, Keys(vehicle), service, timeout_s=self.timeout_s).values)
+            except Exception as exc:
+                print(f"[dashboard] params of {vehicle}/{service}: {exc}", flush=True)
+        self.pool.submit(go)
+
+    def compute(self, fn: Callable[[], object]) -> None:
+        self.pool.submit(fn)
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+def decode_into(model, kind: str, key: str, payload: bytes, received_s: float) -> None:
+    """One raw sample into the model (malformed ones counted, never fatal)."""
+    try:
+        vehicle = vehicle_of(key)
+        if kind == "alive":
+            model.ingest(vehicle, "alive", payload == b"1", received_s, service=key.rsplit("/", 1)[-1])
+            return
+        cls = PER_SERVICE.get(kind) or TOPICS[kind]
+        model.ingest(vehicle, kind, cls.from_bytes(payload), received_s)
+    except (SchemaError, ValueError, KeyError) as exc:
+        model.reject(key, str(exc))
+
+
+class Dashboard:
+    """The running dashboard: observer → model → view, plus the bus facade for controls."""
+
+    def __init__(self, bus, *, host: str, port: int, ui_rate_hz: float = 20.0, window_s: float = 10.0,
+                 phys_per_norm: float | None = None, default_vehicle: str = "uav1") -> None:
+        import viser
+
+        from dashboard.model import FleetModel
+        from dashboard.view import DashboardView
+        from runtime.observer import Observer
+
+        self.model = FleetModel(window_s=window_s)
+        self.lock = threading.Lock()
+        self.observer = Observer(bus)
+        self.facade = BusFacade(self.observer.session)
+        self.server = viser.ViserServer(host=host, port=port, label="Neural-ESO", verbose=False)
+        if self.server.get_port() != port:
+            actual = self.server.get_port()
+            self.server.stop()
+            self.facade.close()
+            self.observer.close()
+            raise PortTaken(f"port {port} is taken (viser would have moved to {actual}): choose --port")
+        self.view = DashboardView(self.server, self.model, self.lock, self.facade, phys_per_norm=phys_per_norm,
+                                  default_vehicle=default_vehicle)
+        self.period_s = 1.0 / ui_rate_hz
+        self._seeded: set[tuple[str, str]] = set()
+        self._stop = threading.Event()
+        for topic in WATCHED:
+            self.observer.watch(topic, topic)
+        for kind in PER_SERVICE:
+            self.observer.watch(f"{kind}/*", kind)
+        self.observer.watch_alive()
+
+    def _seed_params(self, vehicle: str, service: str) -> None:
+        """A service seen alive for the first time: ask its parameters (broadcasts only come on change)."""
+        if (vehicle, service) in self._seeded:
+            return
+        self._seeded.add((vehicle, service))
+
+        def done(values: dict) -> None:
+            with self.lock:
+                self.model.vehicle(vehicle).ingest_params(service, values)
+        self.facade.get_params(vehicle, service, done)
+
+    def step(self, tick: int) -> None:
+        items = self.observer.drain()
+        now = time.monotonic()
+        with self.lock:
+            self.model.dropped = self.observer.dropped
+            for kind, key, payload, received in items:
+                decode_into(self.model, kind, key, payload, received)
+                if kind == "alive" and payload == b"1":
+                    self._seed_params(vehicle_of(key), key.rsplit("/", 1)[-1])
+            with self.server.atomic():
+                self.view.render_pose()
+                if tick % 2 == 0:
+                    self.view.render(now)
+
+    def run(self) -> None:
+        tick = 0
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.step(tick)
+            except Exception as exc:  # a rendering bug must not end the page
+                print(f"[dashboard] render failed: {type(exc).__name__}: {exc}", flush=True)
+            tick += 1
+            next_t += self.period_s
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                next_t = time.monotonic()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        self.facade.close()
+        self.server.stop()
+        self.observer.close()
+
+
+def physical_factor(network_path: str) -> float | None:
+    """(physical L_N) / (normalised L_N) of the network file the estimator flies, for the
+    certificate when no network report is on the bus (None if the file cannot be read)."""
+    if not network_path:
+        return None
+    try:
+        from neso.netfile import load_network
+
+        net = load_network(network_path)
+        return net.lipschitz_bound_physical() / net.lipschitz_bound
+    except Exception as exc:
+        print(f"[dashboard] cannot read {network_path} for the L_N units: {exc}", flush=True)
+        return None
+
+
+# -- service entry points ---------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from services.estimator import DEFAULT_NETWORK
+
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback only)")
+    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
+    parser.add_argument("--ui-rate", type=float, default=20.0, help="pose updates per second (plots at half)")
+    parser.add_argument("--window", type=float, default=10.0, help="seconds shown in plots and figures")
+    parser.add_argument("--nice", type=int, default=10,
+                        help="CPU niceness added at start (default 10): the page must never slow the control loop")
+    parser.add_argument("--network", default=DEFAULT_NETWORK,
+                        help="the network the estimators fly (for L_N in physical units until a network report)")
+
+
+def run(args, bus) -> int:
+    import os
+    import signal
+
+    if args.nice:
+        os.nice(args.nice)
+    factor = physical_factor(args.network)
+    stopping = threading.Event()
+    holder: list[Dashboard] = []
+
+    def on_signal(*_) -> None:
+        stopping.set()
+        if holder:
+            holder[0].stop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    while not stopping.is_set():
+        try:
+            dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
+                             phys_per_norm=factor, default_vehicle=args.vehicle)
+            break
+        except PortTaken as exc:  # wait for it rather than crash-loop: the flight never depends on the page
+            print(f"[dashboard] {exc}; trying again in {PORT_RETRY_S:g} s", flush=True)
+            stopping.wait(PORT_RETRY_S)
+    else:
+        return 0
+    holder.append(dash)
+    if stopping.is_set():
+        dash.stop()
+    print(f"[dashboard] serving http://{args.host}:{args.port} (L_N physical/normalised "
+          f"{'unknown' if factor is None else f'{factor:.4g}'})", flush=True)
+    try:
+        dash.run()
+        return 0
+    finally:
+        dash.close()

@@ -1,0 +1,405 @@
+"""The viser page: 3D scene, live plots, figures, health and controls.
+
+The view reads the model (under the service's model lock) and renders at a throttled rate;
+controls only hand a request to the bus facade (:class:`dashboard.service.BusFacade`), which
+runs it on a worker thread and reports the reply back here. Nothing in a UI callback blocks.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from dashboard.model import Certificate, FleetModel, VehicleModel, certificate_for
+from neso.rotations import world_from_body_zyx
+
+PATHWAYS = ("neural_eso", "eso", "nn", "none")
+RISKY_PATHWAYS = ("nn", "none")  # no online correction: confirm while airborne
+MISSIONS = (("Arm", "arm", None), ("Take off", "takeoff", None), ("Hover", "hover", None),
+            ("Landing test", "landing_test", None), ("Lemniscate", "lemniscate", None), ("Land", "land", None),
+            ("Hold", "hold", "yellow"), ("ABORT", "abort", "red"))
+SCENARIOS = {"nominal": "nominal_landing", "slope": "ood_slope", "turbulence": "lemniscate_near_ground"}
+PLOT_POINTS = 300  # points per series sent to the browser
+
+
+def _fmt(x: float, spec: str = ".3f", unit: str = "") -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:{spec}}{unit}"
+
+
+def _decimate(columns: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    length = len(next(iter(columns.values())))
+    if length <= n:
+        return columns
+    idx = np.linspace(0, length - 1, n).astype(int)
+    return {k: v[idx] for k, v in columns.items()}
+
+
+def _ffill(a: np.ndarray) -> np.ndarray:
+    """NaNs replaced by the previous finite value (leading NaNs by the first finite one, or 0)."""
+    a = np.asarray(a, dtype=float).copy()
+    ok = np.isfinite(a)
+    if not ok.any():
+        return np.zeros_like(a)
+    idx = np.where(ok, np.arange(len(a)), 0)
+    np.maximum.accumulate(idx, out=idx)
+    first = int(np.argmax(ok))
+    idx[:first] = first
+    return a[idx]
+
+
+def _quat_wxyz(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    r = world_from_body_zyx(roll, pitch, yaw)
+    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
+    if w < 1e-6:
+        return (0.0, 1.0, 0.0, 0.0)
+    return (w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w))
+
+
+class DashboardView:
+    """Builds the page once and re-renders the selected vehicle on :meth:`render`."""
+
+    def __init__(self, server, model: FleetModel, lock: threading.Lock, bus, *, phys_per_norm: float | None,
+                 default_vehicle: str = "uav1", certify: Callable[..., Certificate] = certificate_for) -> None:
+        self.server, self.model, self.lock, self.bus = server, model, lock, bus
+        self.phys_per_norm = phys_per_norm
+        self.certify = certify
+        self.selected = default_vehicle
+        self._text_cache: dict[int, str] = {}
+        self._pending_pathway: tuple[str, str] | None = None
+        self._cert_cache: dict[tuple, Certificate] = {}
+        self._scenario_drawn = ""
+        self._build()
+
+    # -- page ------------------------------------------------------------------------------
+    def _build(self) -> None:
+        s, gui = self.server.scene, self.server.gui
+        s.set_up_direction("+z")
+        # shadows and the image-based environment light cost most of a software-rendered frame
+        # (Chromium without a GPU: 4 fps with them, see dashboard/README.md); plain lights instead
+        s.configure_default_lights(cast_shadow=False)
+        s.configure_environment_map(hdri=None)
+        self.server.initial_camera.position = (1.4, -1.6, 1.5)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.6)
+        s.add_grid("/ground", width=6.0, height=6.0, cell_size=0.25, section_size=1.0, plane_color=(236, 240, 236),
+                   plane_opacity=0.6)
+        s.add_frame("/world", axes_length=0.3, axes_radius=0.008)
+        self.vehicle_frame = s.add_frame("/vehicle", axes_length=0.22, axes_radius=0.01)
+        s.add_box("/vehicle/body", dimensions=(0.25, 0.25, 0.05), color=(40, 60, 90))
+        for i, (x, y) in enumerate(((0.127, 0.127), (-0.127, 0.127), (-0.127, -0.127), (0.127, -0.127))):
+            s.add_cylinder(f"/vehicle/rotor{i}", radius=0.06, height=0.01, color=(200, 80, 60) if x > 0 else (90, 90, 90),
+                           position=(x, y, 0.03))
+        self.trail = s.add_point_cloud("/trail", points=np.zeros((1, 3), np.float32), colors=(30, 110, 220),
+                                       point_size=0.02, point_shape="circle")
+        self.ref_path = s.add_point_cloud("/reference", points=np.zeros((1, 3), np.float32), colors=(240, 150, 20),
+                                          point_size=0.014, point_shape="circle")
+        self.slope = None
+
+        gui.configure_theme(control_width="large", show_share_button=False, brand_color=(30, 90, 160))
+        gui.main_panel.dock_right()
+        self.title = gui.add_markdown("**Neural-ESO** · waiting for a vehicle")
+        self.vehicle_dd = gui.add_dropdown("Vehicle", (self.selected,), initial_value=self.selected)
+        self.vehicle_dd.on_update(lambda _: self._select(self.vehicle_dd.value))
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Flight"):
+            self.figures = gui.add_markdown("")
+            self.events = gui.add_markdown("")
+        with tabs.add_tab("Control"):
+            self.reply = gui.add_markdown("_no action yet_")
+            self.pathway_dd = gui.add_dropdown("Pathway", PATHWAYS, initial_value="neural_eso")
+            self.pathway_dd.on_update(self._on_pathway)
+            self.confirm_text = gui.add_markdown("", visible=False)
+            self.confirm_btn = gui.add_button("Confirm pathway switch", color="red", visible=False)
+            self.cancel_btn = gui.add_button("Cancel", visible=False)
+            self.confirm_btn.on_click(lambda _: self._confirm_pathway(True))
+            self.cancel_btn.on_click(lambda _: self._confirm_pathway(False))
+            self.lip_in = gui.add_number("L_N (normalised)", 1.0, min=1e-4, max=100.0, step=1e-4)
+            self.lip_override = gui.add_checkbox("Override certificate (L_N)", False)
+            self.lip_btn = gui.add_button("Apply L_N")
+            self.lip_btn.on_click(lambda _: self._apply_lipschitz())
+            with gui.add_folder("Mission"):
+                for label, name, color in MISSIONS:
+                    b = gui.add_button(label, color=color)
+                    b.on_click(lambda _, name=name: self._mission(name))
+            with gui.add_folder("Scenario (simulator)"):
+                self.scenario_dd = gui.add_dropdown("Scenario", tuple(SCENARIOS), initial_value="nominal")
+                gui.add_button("Restart world with scenario").on_click(lambda _: self._scenario())
+            with gui.add_folder("Advanced: gains", expand_by_default=False):
+                self.gain_in = {k: gui.add_number(k, v, min=0.1, max=50.0, step=0.1)
+                                for k, v in (("kp_xy", 6.0), ("kd_xy", 4.5), ("kp_z", 10.0), ("kd_z", 6.0))}
+                self.omega_in = gui.add_number("ω_o rad/s (start-up, read-only)", 15.0, disabled=True)
+                self.gain_override = gui.add_checkbox("Override certificate (gains)", False)
+                gui.add_button("Apply gains").on_click(lambda _: self._apply_gains())
+        with tabs.add_tab("Services"):
+            self.health = gui.add_markdown("")
+            self.vehicle_status = gui.add_markdown("")
+        with tabs.add_tab("Network"):
+            self.network = gui.add_markdown("")
+            self.net_reply = gui.add_markdown("")
+            for label, service, name in (("Train", "trainer", "train"), ("Promote candidate", "estimator", "promote"),
+                                         ("Roll back", "estimator", "rollback")):
+                gui.add_button(label).on_click(lambda _, s=service, n=name: self._network_cmd(s, n))
+
+        plots = gui.add_panel()
+        with plots.add_tab("Live plots"):
+            x_scale = {"x": {"time": False}}
+            self.alt_plot = gui.add_uplot(
+                (np.zeros(2), np.zeros(2), np.zeros(2)),
+                ({"label": "t (s)"}, {"label": "z (m)", "stroke": "#1f6fd0", "width": 2},
+                 {"label": "z ref (m)", "stroke": "#f08c14", "width": 2, "dash": [6, 4]}),
+                title="Altitude", scales=x_scale, aspect=2.0)
+            self.err_plot = gui.add_uplot(
+                (np.zeros(2), np.zeros(2)), ({"label": "t (s)"}, {"label": "z error (cm)", "stroke": "#d03030", "width": 2}),
+                title="z tracking error", scales=x_scale, aspect=2.4)
+            self.dist_plot = gui.add_uplot(
+                (np.zeros(2),) * 5,
+                ({"label": "t (s)"}, {"label": "f_N", "stroke": "#8e44ad", "width": 1.5},
+                 {"label": "Δf̂", "stroke": "#27ae60", "width": 1.5}, {"label": "f̂", "stroke": "#2c3e50", "width": 2},
+                 {"label": "truth", "stroke": "#aaaaaa", "width": 1, "dash": [3, 3]}),
+                title="Disturbance z (m/s²)", scales=x_scale, aspect=2.0)
+            self.thrust_plot = gui.add_uplot(
+                (np.zeros(2), np.zeros(2)), ({"label": "t (s)"}, {"label": "thrust (N)", "stroke": "#16a085", "width": 2}),
+                title="Thrust", scales=x_scale, aspect=2.4)
+        plots.dock_left()
+        plots.set_width(460)
+
+    # -- helpers ---------------------------------------------------------------------------
+    def _set(self, handle, text: str) -> None:
+        """Send markdown only when it changed (the browser is not re-sent identical text)."""
+        if self._text_cache.get(id(handle)) != text:
+            self._text_cache[id(handle)] = text
+            handle.content = text
+
+    def _show_reply(self, target, what: str, ok: bool, text: str) -> None:
+        mark = "✔ **accepted**" if ok else "✖ **refused**"
+        self._set(target, f"{mark} · {what}: {text}" if text else f"{mark} · {what}")
+
+    def _vehicle(self) -> VehicleModel:
+        return self.model.vehicle(self.selected)
+
+    def _select(self, name: str) -> None:
+        self.selected = name
+
+    def _cert(self, inputs: tuple | None) -> Certificate | None:
+        if inputs is None:
+            return None
+        if inputs not in self._cert_cache:
+            self._cert_cache[inputs] = self.certify(*inputs)
+        return self._cert_cache[inputs]
+
+    # -- controls (each only hands a request to the bus facade) ---------------------------
+    def _on_pathway(self, _event) -> None:
+        value, vehicle = self.pathway_dd.value, self.selected
+        with self.lock:
+            airborne = self._vehicle().airborne(time.monotonic())
+        if value in RISKY_PATHWAYS and airborne:
+            self._pending_pathway = (vehicle, value)
+            self._set(self.confirm_text, f"⚠ **{value}** while airborne: no online correction of the network. Confirm?")
+            for h in (self.confirm_text, self.confirm_btn, self.cancel_btn):
+                h.visible = True
+            return
+        self._send_pathway(vehicle, value)
+
+    def _confirm_pathway(self, yes: bool) -> None:
+        pending, self._pending_pathway = self._pending_pathway, None
+        for h in (self.confirm_text, self.confirm_btn, self.cancel_btn):
+            h.visible = False
+        if pending is None:
+            return
+        if yes:
+            self._send_pathway(*pending)
+        else:
+            self._show_reply(self.reply, f"pathway {pending[1]}", False, "cancelled by the operator")
+
+    def _send_pathway(self, vehicle: str, value: str) -> None:
+        self.bus.set_params(vehicle, "estimator", {"pathway": value},
+                            lambda ok, text: self._show_reply(self.reply, f"pathway {value} on {vehicle}", ok, text))
+
+    def _apply_lipschitz(self) -> None:
+        value, vehicle, override = float(self.lip_in.value), self.selected, bool(self.lip_override.value)
+        with self.lock:
+            inputs = self._vehicle().certificate_inputs(self.phys_per_norm, lipschitz_norm=value)
+
+        def guarded() -> tuple[bool, str]:
+            cert = self._cert(inputs)
+            if cert is None:
+                return False, "certificate unknown (no gains, ω_o or L_N from the vehicle yet)"
+            if not cert.holds and not override:
+                return False, f"certificate {cert.text} at L_N={value:g} (physical {cert.lipschitz_phys:.3g}); " \
+                              "tick override to send anyway"
+            return True, cert.text
+
+        self.bus.guarded_set(vehicle, "estimator", {"lipschitz_bound": value}, guarded,
+                             lambda ok, text: self._show_reply(self.reply, f"L_N={value:g} on {vehicle}", ok, text))
+
+    def _apply_gains(self) -> None:
+        gains = {k: float(h.value) for k, h in self.gain_in.items()}
+        vehicle, override = self.selected, bool(self.gain_override.value)
+        with self.lock:
+            inputs = self._vehicle().certificate_inputs(self.phys_per_norm, gains=gains)
+
+        def guarded() -> tuple[bool, str]:
+            cert = self._cert(inputs)
+            if cert is None:
+                return False, "certificate unknown (no ω_o or L_N from the vehicle yet)"
+            if not cert.holds and not override:
+                return False, f"certificate {cert.text}; tick override to send anyway"
+            return True, cert.text
+
+        self.bus.guarded_set(vehicle, "controller", gains, guarded,
+                             lambda ok, text: self._show_reply(self.reply, f"gains {gains} on {vehicle}", ok, text))
+
+    def _mission(self, name: str) -> None:
+        vehicle = self.selected
+        self.bus.command(vehicle, "controller", name, {},
+                         lambda ok, text: self._show_reply(self.reply, f"{name} on {vehicle}", ok, text))
+
+    def _scenario(self) -> None:
+        vehicle, name = self.selected, SCENARIOS[self.scenario_dd.value]
+        self.bus.command(vehicle, "source", "scenario", {"name": name},
+                         lambda ok, text: self._show_reply(self.reply, f"scenario {name} on {vehicle}", ok, text))
+
+    def _network_cmd(self, service: str, name: str) -> None:
+        vehicle = self.selected
+        self.bus.command(vehicle, service, name, {},
+                         lambda ok, text: self._show_reply(self.net_reply, f"{service} {name} on {vehicle}", ok, text))
+
+    # -- rendering -------------------------------------------------------------------------
+    def render_pose(self) -> None:
+        """Vehicle pose and trails (cheap; called at the fast UI rate)."""
+        v = self._vehicle()
+        state = v.latest.get("state")
+        if state is None:
+            return
+        self.vehicle_frame.position = np.array(state.pos_enu_m)
+        self.vehicle_frame.wxyz = np.array(_quat_wxyz(state.roll_rad, state.pitch_rad, state.yaw_rad))
+        if len(v.trail) > 1:
+            self.trail.points = np.array(v.trail, dtype=np.float32)[-600:]
+        if len(v.ref_trail) > 1:
+            self.ref_path.points = np.array(v.ref_trail, dtype=np.float32)[-600:]
+
+    def render(self, now_s: float) -> None:
+        """Plots, figures and panels of the selected vehicle (called at the slow UI rate)."""
+        names = sorted(self.model.vehicles) or [self.selected]
+        if tuple(self.vehicle_dd.options) != tuple(names):
+            self.vehicle_dd.options = tuple(names)
+        if self.selected not in self.model.vehicles and self.model.vehicles:
+            self.selected = names[0]
+        v = self._vehicle()
+        self._render_scene_extras(v)
+        self._render_plots(v)
+        self._render_text(v, now_s)
+
+    def _render_scene_extras(self, v: VehicleModel) -> None:
+        truth = v.latest.get("truth")
+        scenario = truth.scenario if truth is not None else ""
+        if scenario == self._scenario_drawn:
+            return
+        self._scenario_drawn = scenario
+        if self.slope is not None:
+            self.slope.remove()
+            self.slope = None
+        if scenario == "ood_slope":
+            from sim.terrain import SlopeTerrain  # the simulator's ramp geometry, drawn as it is simulated
+
+            t = SlopeTerrain()
+            x0, x1, tan_s = t.landing_x_m + t.edge_offset_m, 2.5, math.tan(math.radians(t.slope_deg))
+            verts = np.array([[x0, -2.5, 0.0], [x1, -2.5, (x1 - x0) * tan_s], [x1, 2.5, (x1 - x0) * tan_s],
+                              [x0, 2.5, 0.0]], dtype=np.float32)
+            self.slope = self.server.scene.add_mesh_simple("/slope", verts, np.array([[0, 1, 2], [0, 2, 3]]),
+                                                           color=(160, 130, 90), opacity=0.7, side="double")
+
+    def _render_plots(self, v: VehicleModel) -> None:
+        w = v.window()
+        if len(w["t"]) < 2:
+            return
+        w = _decimate(w, PLOT_POINTS)
+        t = w["t"] - w["t"][-1]  # seconds before now
+        z, ref = _ffill(w["z"]), _ffill(w["ref_z"])
+        self.alt_plot.data = (t, z, ref)
+        err = np.where(np.isfinite(w["z"]) & np.isfinite(w["ref_z"]), (w["z"] - w["ref_z"]) * 100.0, np.nan)
+        self.err_plot.data = (t, _ffill(err))
+        self.dist_plot.data = (t, _ffill(w["f_n_z"]), _ffill(w["df_hat_z"]), _ffill(w["f_hat_z"]),
+                               _ffill(w["truth_dist_z"]))
+        self.thrust_plot.data = (t, _ffill(w["thrust_n"]))
+
+    def _render_text(self, v: VehicleModel, now_s: float) -> None:
+        state, est, ref = v.latest.get("state"), v.latest.get("estimate"), v.latest.get("reference")
+        cert_inputs = v.certificate_inputs(self.phys_per_norm)
+        cert = self._cert_cache.get(cert_inputs) if cert_inputs is not None else None
+        if cert_inputs is not None and cert is None:
+            self.bus.compute(lambda: self._cert(cert_inputs))  # first time for these inputs: off this thread
+        rms_z, rms_3d = v.tracking_rms_m()
+        lat50, lat99 = v.loop_latency_ms()
+        bus50, bus99 = v.bus_latency_ms()
+        ln, lp = v.lipschitz(self.phys_per_norm)
+        segment = ref.segment if ref is not None and now_s - v.received.get("reference", -1e9) < 1.0 else "idle"
+        rec = v.latest.get("recording")
+        rec_text = "not recorded (no recorder on the bus)" if rec is None else (
+            f"● REC `{rec.path}` · {rec.duration_s:.1f} s" if rec.recording else "recorder idle")
+        self._set(self.title, f"### {v.name} · {segment} · pathway **{est.pathway if est else '–'}**  \n"
+                              f"certificate **{'–' if cert is None else ('HOLDS' if cert.holds else 'FAILS')}** · "
+                              f"{rec_text}")
+        if state is not None:
+            pose = (f"x {state.pos_enu_m[0]:+.3f} y {state.pos_enu_m[1]:+.3f} **z {state.pos_enu_m[2]:.3f} m** · "
+                    f"roll {math.degrees(state.roll_rad):+.1f}° pitch {math.degrees(state.pitch_rad):+.1f}° "
+                    f"yaw {math.degrees(state.yaw_rad):+.1f}°")
+        else:
+            pose = "no state yet"
+        net = v.latest.get("network")
+        origin = (str(net.active.get("source", "")) if net is not None else
+                  v.param_notes.get("estimator", "as loaded at start"))
+        lines = [
+            f"**Pose** (t = {_fmt(state.t_s if state else math.nan, '.2f')} s, flight {v.flights + 1}): {pose}",
+            f"**Reference z** {_fmt(ref.pos_enu_m[2] if ref else math.nan, '.3f', ' m')}",
+            "",
+            "| figure | value |", "|---|---|",
+            f"| tracking RMS z / 3D ({v.window_s:g} s) | {_fmt(rms_z * 100, '.2f')} / {_fmt(rms_3d * 100, '.2f')} cm |",
+            f"| loop rate | {_fmt(v.loop_rate_hz(), '.1f')} Hz |",
+            f"| loop latency state→setpoint p50/p99 | {_fmt(lat50, '.2f')} / {_fmt(lat99, '.2f')} ms |",
+            f"| bus → dashboard p50/p99 | {_fmt(bus50, '.2f')} / {_fmt(bus99, '.2f')} ms |",
+            f"| pathway | {est.pathway if est else '–'} |",
+            f"| network | `{est.network_id if est else '–'}` |",
+            f"| L_N normalised / physical | {_fmt(ln, '.4g')} / {_fmt(lp, '.4g')} (m/s²)/unit z |",
+            f"| network origin | {origin[:160]} |",
+            f"| ω_o | {_fmt(v.omega_o_rps(), '.1f', ' rad/s')} |",
+            f"| certificate | {'computing…' if cert is None and cert_inputs else (cert.text if cert else '–')} |",
+        ]
+        self._set(self.figures, "\n".join(lines))
+        events = [f"- `{e.service}` {e.level}: {e.text[:140]}" for e in list(v.events)[-5:]]
+        self._set(self.events, "**Events**\n\n" + ("\n".join(events) if events else "_none_"))
+        rows = ["| service | alive | rate | stale | rejected | status |", "|---|---|---|---|---|---|"]
+        for name, sh in sorted(v.services.items()):
+            h = sh.health
+            stale = sh.stale(now_s)
+            rows.append(f"| {name} | {'yes' if sh.alive else '**NO**'} | {_fmt(h.rate_hz if h else math.nan, '.1f')} Hz | "
+                        f"{'⚠ ' if stale else ''}{_fmt(max(h.staleness_s.values(), default=-1.0) * 1e3 if h else math.nan, '.0f')} ms | "
+                        f"{int(sum(h.rejected.values())) if h else '–'} | {(h.status if h else 'no report')[:100]} |")
+        rows.append(f"\nDashboard: {self.model.rejected} rejected messages, {self.model.dropped} dropped (inbox full)"
+                    + (f" (last: {self.model.last_rejection[:120]})" if self.model.rejected else ""))
+        self._set(self.health, "\n".join(rows))
+        tel = v.latest.get("telemetry")
+        tel_text = "**Vehicle (PX4)**: no telemetry on the bus (direct sim)" if tel is None else (
+            f"**Vehicle (PX4)**: {'ARMED' if tel.armed else 'disarmed'} · mode {tel.flight_mode} · "
+            f"{'in air' if tel.in_air else 'on ground'} · battery {tel.battery_v:.2f} V "
+            f"({_fmt(tel.battery_remaining * 100 if tel.battery_remaining >= 0 else math.nan, '.0f')} %)"
+            + (f" · failsafe **{tel.failsafe}**" if tel.failsafe else ""))
+        rec_line = "**Recording**: " + (rec_text if rec is None else
+                                        f"{rec_text} · flight `{rec.flight}` · {rec.size_bytes / 1e6:.1f} MB · "
+                                        f"dropped {rec.dropped}")
+        self._set(self.vehicle_status, tel_text + "\n\n" + rec_line)
+        if net is None:
+            net_text = "**Networks**: no network report on the bus; active network from estimates: " \
+                       f"`{est.network_id if est else '–'}`"
+        else:
+            cand = net.candidate
+            net_text = (f"**Active** `{net.active.get('id', '?')}` from {net.active.get('source', '?')} · L_N "
+                        f"{net.active.get('lipschitz_norm', '–')} normalised / {net.active.get('lipschitz_phys', '–')} phys  \n"
+                        + (f"**Candidate** `{cand.get('id')}` ({cand.get('state', '')}) · shadow error "
+                           f"{net.shadow_error_rms_mps2:.3f} m/s² RMS" if cand else "no candidate")
+                        + (f"  \nprevious `{net.previous.get('id')}`" if net.previous else ""))
+        self._set(self.network, net_text)
+        if self._pending_pathway is not None and self._pending_pathway[0] != self.selected:
+            self._confirm_pathway(False)

@@ -1,0 +1,73 @@
+"""The controller's operator commands beyond the missions: arm, disarm, hold, abort."""
+from __future__ import annotations
+
+import numpy as np
+
+from runtime.schema import StateMsg
+from services.controller import ControllerConfig, ControllerCore
+from tests.unit.test_services_core import estimate
+
+
+def moving_state(seq, z, vz=0.0):
+    return StateMsg(seq=seq, stamp_s=1.0, t_s=0.02 * (seq + 1), pos_enu_m=(0.3, -0.2, z), vel_enu_mps=(0.0, 0.0, vz),
+                    roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, source="sim")
+
+
+def step(core, seq, z, vz=0.0):
+    core.on_state(moving_state(seq, z, vz), 0.02 * seq)
+    out = core.on_estimate(estimate(seq), 0.02 * seq + 0.001)
+    return out[0] if out else (None, None)
+
+
+def test_a_controller_started_idle_is_disarmed_and_refuses_take_off_until_armed():
+    core = ControllerCore(ControllerConfig(mission="idle"))
+    step(core, 0, 0.0)
+    ok, why = core.command("takeoff", {})
+    assert not ok and "arm" in why
+    assert core.command("arm", {}) == (True, "armed: take-off allowed")
+    assert core.command("takeoff", {})[0]
+    _, ref = step(core, 1, 0.0)
+    assert ref.segment == "takeoff"
+    ok, why = core.command("disarm", {})
+    assert not ok and "ground" in why  # not while flying
+
+
+def test_a_controller_started_flying_is_armed():
+    core = ControllerCore(ControllerConfig(mission="hover"))
+    assert core.armed and core.command("landing_test", {})[0]
+
+
+def test_hold_freezes_the_reference_where_the_vehicle_is():
+    core = ControllerCore(ControllerConfig(mission="hover"))
+    step(core, 0, 1.0)
+    core.command("landing_test", {})
+    for k in range(1, 100):
+        _, ref = step(core, k, 1.0 - 0.004 * k, vz=-0.2)
+    z_now = 1.0 - 0.004 * 99
+    assert core.command("hold", {})[0]
+    _, ref = step(core, 100, z_now, vz=-0.2)
+    assert ref.segment == "hold"
+    np.testing.assert_allclose(ref.pos_enu_m, (0.3, -0.2, z_now))
+    assert ref.vel_enu_mps == (0.0, 0.0, 0.0)
+    _, ref2 = step(core, 101, z_now - 0.003)
+    assert ref2.pos_enu_m == ref.pos_enu_m  # frozen
+
+
+def test_abort_lands_from_where_the_vehicle_is():
+    core = ControllerCore(ControllerConfig(mission="hover"))
+    step(core, 0, 1.0)
+    core.command("lemniscate", {})
+    step(core, 1, 0.8)
+    assert core.command("abort", {})[0]
+    _, ref = step(core, 2, 0.8)
+    assert ref.segment == "land"
+    np.testing.assert_allclose(ref.pos_enu_m, (0.3, -0.2, 0.8), atol=1e-9)
+    assert any(level == "warning" and "abort" in text for level, text in core.events)
+
+
+def test_hold_and_abort_on_the_ground_are_refused_with_the_reason():
+    core = ControllerCore(ControllerConfig(mission="idle"))
+    step(core, 0, 0.0)
+    for name in ("hold", "abort"):
+        ok, why = core.command(name, {})
+        assert not ok and "on the ground" in why
