@@ -10,7 +10,9 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -18,9 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from runtime.client import get_params
+from neso.netfile import save_network
+from runtime.client import command, get_params
 from runtime.schema import EventMsg, Keys, NetworkMsg, RecordingMsg, StateMsg, TelemetryMsg
 from tests.browser.chromium import KeptReniced, launch
+from tests.unit.test_hotswap import candidate
 from tests.busutil import REPO, Collector, children_of, free_port, neso, peer, session, stop
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
@@ -51,8 +55,10 @@ class Flight:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.web_port = free_port()
         self.url = f"http://127.0.0.1:{self.web_port}"
+        self.workdir = tempfile.mkdtemp(prefix="neso-dashboard-test-")
         self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint,
-                         "--dashboard-port", str(self.web_port))
+                         "--dashboard-port", str(self.web_port), "--recordings-dir", f"{self.workdir}/recordings",
+                         "--registry", f"{self.workdir}/registry")
         self.output: list[str] = []
         threading.Thread(target=self._pump, daemon=True).start()
         self._session_cm = session(peer(self.endpoint))
@@ -75,7 +81,10 @@ class Flight:
 
     def close(self):
         self._session_cm.__exit__(None, None, None)
-        return stop(self.proc, timeout_s=15)
+        try:
+            return stop(self.proc, timeout_s=15)
+        finally:
+            shutil.rmtree(self.workdir, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
@@ -283,26 +292,30 @@ def test_vehicle_selector_lists_every_vehicle_on_the_bus(flight):
 
 
 def test_px4_recorder_and_network_reports_are_shown_when_present(flight):
+    """Telemetry is published from the test (no PX4 gateway on the direct sim path); the recording
+    is the real recorder's, and the network panel drives a real candidate through the estimator."""
     page = flight.page
-    put = lambda topic, msg: flight.s.put(KEYS.topic(topic), msg.to_bytes())
-    now = time.monotonic()
-    put("telemetry", TelemetryMsg(stamp_s=now, connected=True, armed=True, in_air=True, flight_mode="OFFBOARD",
-                                  roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, pos_enu_m=(0.0, 0.0, 1.0),
-                                  vel_enu_mps=(0.0, 0.0, 0.0), battery_v=15.2, battery_remaining=0.8,
-                                  hover_thrust_norm=0.5, setpoint_age_s=0.01, failsafe=""))
-    put("recording", RecordingMsg(stamp_s=now, recording=True, flight="f-test", segment=0,
-                                  path="recordings/f-test.rrd", duration_s=12.5, size_bytes=2_000_000, dropped=0))
-    put("network", NetworkMsg(stamp_s=now, seq=1, active={"id": "base-L1.0", "source": "file networks/base-L1",
-                                                           "lipschitz_norm": 1.0, "lipschitz_phys": 31.63},
-                              candidate={"id": "tdr-7", "state": "shadow"}, previous={},
-                              shadow_error_rms_mps2=0.123))
-    wait_text(page, r"REC recordings/f-test\.rrd · 12\.5 s")
+    flight.s.put(KEYS.topic("telemetry"), TelemetryMsg(
+        stamp_s=time.monotonic(), connected=True, armed=True, in_air=True, flight_mode="OFFBOARD", roll_rad=0.0,
+        pitch_rad=0.0, yaw_rad=0.0, pos_enu_m=(0.0, 0.0, 1.0), vel_enu_mps=(0.0, 0.0, 0.0), battery_v=15.2,
+        battery_remaining=0.8, hover_thrust_norm=0.5, setpoint_age_s=0.01, failsafe="").to_bytes())
+    wait_text(page, r"REC " + re.escape(flight.workdir) + r"/recordings/\S+\.rrd · \d+\.\d s")
     tab(page, "Services")
     wait_text(page, r"ARMED · mode OFFBOARD · in air · battery 15\.20 V \(80 %\)")
     tab(page, "Network")
-    wait_text(page, r"Candidate tdr-7 \(shadow\) · shadow error 0\.123 m/s² RMS")
     page.get_by_role("button", name="Promote candidate").click()
-    wait_text(page, r"refused · estimator promote on uav1")  # until the hot-swap work lands
+    wait_text(page, r"refused · estimator promote on uav1: .*candidate")  # nothing offered yet
+    path = os.path.join(flight.workdir, "cand-7.safetensors")
+    save_network(path, candidate(seed=7))
+    reply = command(flight.s, KEYS, "estimator", "offer", {"path": path}, timeout_s=5.0)
+    assert reply.ok, reply.message
+    wait_text(page, r"Candidate cand-7 \(shadow\) · shadow error \d+\.\d+ m/s² RMS")
+    page.get_by_role("button", name="Promote candidate").click()
+    wait_text(page, r"accepted · estimator promote on uav1")
+    wait_text(page, r"Active cand-7")
+    page.get_by_role("button", name="Roll back").click()
+    wait_text(page, r"accepted · estimator rollback on uav1")
+    wait_text(page, r"Active base-L1")
 
 
 def test_bus_to_dom_latency(flight):
