@@ -4,6 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+DEMO_S ?= 0
 
 .PHONY: setup demo demo-tdr test bench experiment clean
 
@@ -18,7 +19,8 @@ $(STAMP): pyproject.toml
 
 demo: setup
 	$(VENV)/bin/neso experiment paper --trials 5 --plots out/plots --json out/paper.json --details out/paper-details.json
-	$(VENV)/bin/neso up --scenario nominal_landing --mission landing_test --duration 12
+	@echo "dashboard: http://127.0.0.1:8080   (Ctrl-C stops everything; DEMO_S=60 make demo stops after 60 s)"
+	$(VENV)/bin/neso up --scenario nominal_landing --mission landing_test --duration $(DEMO_S)
 
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json

@@ -40,6 +40,7 @@ def add_parser(subparsers) -> None:
     t.add_argument("--hub", default=None, help="hub endpoint (default: a free loopback port)")
     t.add_argument("--workdir", default=None, help="recordings and registry go here (default: a temp dir)")
     t.add_argument("--epochs", type=int, default=100)
+    t.add_argument("--dashboard-port", type=int, default=8080, help="watch it at http://127.0.0.1:PORT (0: no dashboard)")
     t.add_argument("--json", default=None, help="write the report here as JSON")
 
 
@@ -221,9 +222,10 @@ class _Events:
 
 
 def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
-                 fly_after: bool = True) -> TdrReport:
+                 fly_after: bool = True, dashboard_port: int | None = None) -> TdrReport:
     """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
-    ``fly_after`` False: stop once the new network flies (the bench: stage times only)."""
+    ``fly_after`` False: stop once the new network flies (the bench: stage times only).
+    ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard)."""
     from runtime.bus import BusConfig, open_session
     from runtime.client import command
     from runtime.schema import Keys
@@ -232,6 +234,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     rec_dir, registry = os.path.join(workdir, "recordings"), os.path.join(workdir, "registry")
     argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
             "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry]
+    argv += ["--no-dashboard"] if dashboard_port is None else ["--dashboard-port", str(dashboard_port)]
     up_log = open(os.path.join(workdir, "neso-up.log"), "w")
     up = subprocess.Popen(argv, stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
@@ -343,7 +346,7 @@ def run(args) -> int:
     hub = args.hub or f"tcp/127.0.0.1:{free_loopback_port()}"
     workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
     os.makedirs(workdir, exist_ok=True)
-    report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs)
+    report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs, dashboard_port=args.dashboard_port or None)
     print("\n".join(report.lines()))
     print(f"recordings, registry and the neso up log are in {workdir}")
     if args.json:

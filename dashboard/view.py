@@ -21,6 +21,8 @@ RISKY_PATHWAYS = ("nn", "none")  # no online correction: confirm while airborne
 MISSIONS = (("Arm", "arm", None), ("Take off", "takeoff", None), ("Hover", "hover", None),
             ("Landing test", "landing_test", None), ("Lemniscate", "lemniscate", None), ("Land", "land", None),
             ("Hold", "hold", "yellow"), ("ABORT", "abort", "red"))
+PX4_COMMANDS = (("PX4 arm", "arm", None), ("PX4 offboard", "offboard_start", None), ("PX4 hold", "hold", "yellow"),
+                ("PX4 land", "land", None), ("PX4 disarm", "disarm", None))  # px4_gateway (--vehicle mavlink)
 SCENARIOS = {"nominal": "nominal_landing", "slope": "ood_slope", "turbulence": "lemniscate_near_ground"}
 PLOT_POINTS = 300  # points per series sent to the browser
 
@@ -123,6 +125,10 @@ class DashboardView:
                 for label, name, color in MISSIONS:
                     b = gui.add_button(label, color=color)
                     b.on_click(lambda _, name=name: self._mission(name))
+            with gui.add_folder("PX4 vehicle (gateway)", expand_by_default=False):
+                for label, name, color in PX4_COMMANDS:
+                    b = gui.add_button(label, color=color)
+                    b.on_click(lambda _, name=name: self._px4(name))
             with gui.add_folder("Scenario (simulator)"):
                 self.scenario_dd = gui.add_dropdown("Scenario", tuple(SCENARIOS), initial_value="nominal")
                 gui.add_button("Restart world with scenario").on_click(lambda _: self._scenario())
@@ -255,6 +261,11 @@ class DashboardView:
         vehicle = self.selected
         self.bus.command(vehicle, "controller", name, {},
                          lambda ok, text: self._show_reply(self.reply, f"{name} on {vehicle}", ok, text))
+
+    def _px4(self, name: str) -> None:
+        vehicle = self.selected
+        self.bus.command(vehicle, "px4_gateway", name, {},
+                         lambda ok, text: self._show_reply(self.reply, f"PX4 {name} on {vehicle}", ok, text))
 
     def _scenario(self) -> None:
         vehicle, name = self.selected, SCENARIOS[self.scenario_dd.value]

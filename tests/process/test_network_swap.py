@@ -43,7 +43,7 @@ class Flight:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.registry = registry
         self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint,
-                         "--no-record", "--registry", registry)
+                         "--no-record", "--no-dashboard", "--registry", registry)
         self.output: list[str] = []
         threading.Thread(target=lambda: self.output.extend(self.proc.stdout), daemon=True).start()
         self._cm = session(peer(self.endpoint))

@@ -34,7 +34,7 @@ def _up(*extra: str, home: str):
     old = os.environ.get("HOME")
     os.environ["HOME"] = home  # MAVSDK writes its cache under $HOME/.cache/mavsdk
     try:
-        proc = neso("up", "--hub", endpoint, *extra)
+        proc = neso("up", "--hub", endpoint, "--no-trainer", "--no-record", *extra)
     finally:
         if old is not None:
             os.environ["HOME"] = old
@@ -111,8 +111,10 @@ def fly_takeoff_and_hover(flight: Flight, hover_s: float = 6.5) -> float:
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
+    dashboard_port = free_port()
     f = Flight(tmp_path_factory.mktemp("mavlink"), "--vehicle", "mavlink", "--start", "ground", "--mission", "idle",
-               "--mavlink-port", str(free_port()))
+               "--mavlink-port", str(free_port()), "--dashboard-port", str(dashboard_port))
+    f.dashboard_url = f"http://127.0.0.1:{dashboard_port}"
     try:
         f.probe.wait_for("telemetry", lambda m: m.connected, 40.0)
         yield f
@@ -180,6 +182,7 @@ def test_arm_takeoff_hover_landing_test_and_land_through_the_gateway(flight):
     started = flight.cmd("px4_gateway", "offboard_start")
     assert started.ok, started.message
     assert flight.commands(176)[-1]["params"][1] == 6.0  # offboard main mode
+    assert flight.cmd("controller", "arm").ok  # the runtime's own interlock, beside PX4's arming
     assert flight.cmd("controller", "takeoff").ok
     err = fly_takeoff_and_hover(flight)
     flight.hover_error_m = err
@@ -208,6 +211,7 @@ def test_arm_takeoff_hover_landing_test_and_land_through_the_gateway(flight):
 def test_controller_killed_mid_hover_the_gateway_holds_within_half_a_second_then_lands(flight):
     assert flight.cmd("px4_gateway", "arm").ok
     assert flight.cmd("px4_gateway", "offboard_start").ok
+    assert flight.cmd("controller", "arm").ok  # the runtime's own interlock, beside PX4's arming
     assert flight.cmd("controller", "takeoff").ok
     fly_takeoff_and_hover(flight, hover_s=3.0)
     killed_at = time.monotonic()
@@ -233,12 +237,39 @@ def test_controller_killed_mid_hover_the_gateway_holds_within_half_a_second_then
 def test_hover_error_matches_the_direct_path_within_1_cm(flight, tmp_path):
     mavlink_err = getattr(flight, "hover_error_m", None)
     assert mavlink_err is not None, "the mavlink flight did not run"
-    direct = Flight(tmp_path, "--start", "ground", "--mission", "idle")
+    direct = Flight(tmp_path, "--start", "ground", "--mission", "idle", "--no-dashboard")
     try:
         direct.probe.wait_for("state", lambda m: m.seq > 100, 30.0)  # on the ground a while, as the mavlink flight
+        assert direct.cmd("controller", "arm").ok  # the runtime's own interlock, beside PX4's arming
         assert direct.cmd("controller", "takeoff").ok
         err = fly_takeoff_and_hover(direct)
     finally:
         direct.close()
     print(f"hover RMS error: direct {err * 100:.2f} cm, mavlink {mavlink_err * 100:.2f} cm")
     assert abs(mavlink_err - err) < 0.01
+
+
+def test_the_vehicles_telemetry_is_on_the_dashboard(flight):
+    """What the simulated PX4 reports (armed, mode, battery) reaches the page through MAVLink →
+    MAVSDK → gateway → Zenoh → dashboard, and matches the newest telemetry on the bus."""
+    from playwright.sync_api import sync_playwright
+
+    from tests.browser.chromium import launch
+    from tests.browser.test_dashboard import open_dashboard, tab, wait_text
+
+    with sync_playwright() as pw:
+        browser = launch(pw)
+        try:
+            page = open_dashboard(browser, flight.dashboard_url)
+            tab(page, "Services")
+            shown = wait_text(page, r"Vehicle \(PX4\): (ARMED|disarmed) · mode \S+ · (in air|on ground) · battery "
+                                    r"\d+\.\d\d V", timeout_s=20.0)
+        finally:
+            browser.close()
+    import re
+
+    armed, mode, battery_v = re.search(r"Vehicle \(PX4\): (ARMED|disarmed) · mode (\S+) · .*? battery (\d+\.\d\d) V",
+                                       shown).groups()
+    tele = flight.probe.get("telemetry")[-1]
+    assert (armed == "ARMED") == tele.armed and mode == tele.flight_mode
+    assert abs(float(battery_v) - tele.battery_v) < 0.05

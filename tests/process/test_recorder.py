@@ -26,7 +26,7 @@ class RecordedFlight:
     def __init__(self, directory: Path):
         self.directory = directory
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.proc = neso("up", "--mission", "hover", "--hub", self.endpoint, "--recordings-dir", str(directory))
+        self.proc = neso("up", "--mission", "hover", "--hub", self.endpoint, "--no-dashboard", "--no-trainer", "--recordings-dir", str(directory))
         self.output: list[str] = []
         threading.Thread(target=self._pump, daemon=True).start()
         self._cm = session(peer(self.endpoint))
