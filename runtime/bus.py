@@ -51,6 +51,10 @@ class BusConfig:
         out: dict[str, object] = {
             "mode": self.mode,
             "scouting/multicast/enabled": False,
+            # Both sides of a peer pair dial each other (default: only the greater id dials). A peer
+            # restarted while others run was measured missing a direct link otherwise, and then lost
+            # its traffic when the hub died.
+            "scouting/gossip/autoconnect_strategy": {"peer": {"to_router": "always", "to_peer": "always"}},
             "connect/endpoints": list(self.connect),
             "listen/endpoints": list(self.listen),
             "connect/retry": {
