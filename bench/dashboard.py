@@ -28,7 +28,7 @@ import numpy as np
 
 from runtime.bus import BusConfig
 from runtime.schema import EventMsg, Keys, SetpointMsg
-from tests.browser.chromium import KeptReniced, launch
+from tests.browser.chromium import KeptReniced, launch, open_dashboard
 from tests.busutil import children_of, free_port, neso, session, stop
 
 RATE_HZ = 50.0
@@ -77,7 +77,7 @@ def _fly(flight_s: float, *, browsers: int, dashboard: bool | None = None) -> di
                 with sync_playwright() as pw:
                     browser = launch(pw)
                     try:
-                        pages = [_open(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
+                        pages = [open_dashboard(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
                         with KeptReniced():
                             cpu0 = _cpu_s(_dashboard_pid(proc.pid))
                             _measure(flight_s, measuring)
@@ -124,20 +124,6 @@ def _cpu_s(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as f:
         fields = f.read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _open(browser, url: str, timeout_s: float = 40.0):
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            page.goto(url, timeout=3000)
-            page.get_by_text("loop rate").wait_for(timeout=5000)
-            return page
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.3)
 
 
 def _measure(flight_s: float, measuring: threading.Event) -> None:

@@ -3,7 +3,6 @@ queries out. Unlike :class:`runtime.node.Node` it belongs to no vehicle and publ
 its callbacks only enqueue (the caller decodes on its own thread, off Zenoh's)."""
 from __future__ import annotations
 
-import threading
 import time
 from collections import deque
 from typing import Any
@@ -23,7 +22,6 @@ class Observer:
         self.inbox: deque[tuple[str, str, bytes, float]] = deque(maxlen=max_queued)
         self.dropped = 0
         self._declared: list[Any] = []
-        self._lock = threading.Lock()
 
     def _put(self, item) -> None:
         if len(self.inbox) == self.inbox.maxlen:

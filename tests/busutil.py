@@ -123,3 +123,16 @@ def children_of(pid: int) -> list[int]:
             except (FileNotFoundError, ProcessLookupError, IndexError):
                 pass
     return kids
+
+
+def role_pid(launcher_pid: int, role: str) -> int:
+    """The pid of the ``neso run <role>`` child of a ``neso up`` launcher."""
+    for pid in children_of(launcher_pid):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = f.read().split(b"\0")
+        except FileNotFoundError:
+            continue
+        if b"run" in argv and argv.index(b"run") + 1 < len(argv) and argv[argv.index(b"run") + 1] == role.encode():
+            return pid
+    raise AssertionError(f"no {role} process under the launcher")

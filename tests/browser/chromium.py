@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 
 import pytest
 
@@ -78,3 +79,19 @@ class KeptReniced:
 
     def __exit__(self, *exc) -> None:
         self._done.set()
+
+
+def open_dashboard(browser, url: str, timeout_s: float = 40.0):
+    """A 1600×1000 page on the dashboard at ``url``, once it shows its figures (retried while the
+    server starts)."""
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            page.goto(url, timeout=3000)
+            page.get_by_text("loop rate").wait_for(timeout=5000)
+            return page
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.3)

@@ -22,28 +22,14 @@ import pytest
 
 from neso.netfile import save_network
 from runtime.client import command, get_params
-from runtime.schema import EventMsg, Keys, NetworkMsg, RecordingMsg, StateMsg, TelemetryMsg
-from tests.browser.chromium import KeptReniced, launch
+from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
+from tests.browser.chromium import KeptReniced, launch, open_dashboard
 from tests.unit.test_hotswap import candidate
 from tests.busutil import REPO, Collector, children_of, free_port, neso, peer, session, stop
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
 KEYS = Keys("uav1")
 FIGURES: dict[str, object] = {}
-
-
-def open_dashboard(browser, url: str, timeout_s: float = 40.0):
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            page.goto(url, timeout=3000)
-            page.get_by_text("loop rate").wait_for(timeout=5000)
-            return page
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.3)
 
 
 def text(page) -> str:

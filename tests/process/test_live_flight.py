@@ -19,7 +19,7 @@ import pytest
 from neso.rotations import world_from_body_zyx
 from runtime.client import get_params, set_params
 from runtime.schema import TOPICS, HealthMsg, Keys, ParamStateMsg, SchemaError
-from tests.busutil import Collector, children_of, free_port, neso, peer, session, stop
+from tests.busutil import Collector, children_of, free_port, neso, peer, role_pid, session, stop
 
 PERIOD_S = 0.02
 KEYS = Keys("uav1")
@@ -74,12 +74,7 @@ class Flight:
         return msgs[-1].seq if msgs else -1
 
     def pid_of(self, role: str) -> int:
-        for pid in children_of(self.proc.pid):
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                argv = f.read().split(b"\0")
-            if b"run" in argv and argv[argv.index(b"run") + 1] == role.encode():
-                return pid
-        raise AssertionError(f"no {role} process under the launcher")
+        return role_pid(self.proc.pid, role)
 
     def close(self):
         for sub in self.subs:

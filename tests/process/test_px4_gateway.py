@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from runtime.client import command
-from runtime.schema import SetpointMsg, TelemetryMsg
-from tests.busutil import Collector, children_of, free_port, neso, peer, session, stop
+from runtime.schema import SetpointMsg
+from tests.busutil import Collector, free_port, neso, peer, role_pid, session, stop
 
 TOPICS = ("state", "truth", "estimate", "setpoint", "reference", "telemetry")
 HOLD = (4.0, 3.0)  # PX4 main/sub mode of AUTO.LOITER in DO_SET_MODE param2/param3
@@ -67,12 +67,7 @@ class Flight:
         return [e for e in self.vehicle_log() if e["kind"] == "command" and (code is None or e["command"] == code)]
 
     def pid_of(self, role: str) -> int:
-        for pid in children_of(self.proc.pid):
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                argv = f.read().split(b"\0")
-            if b"run" in argv and argv[argv.index(b"run") + 1] == role.encode():
-                return pid
-        raise AssertionError(f"no {role} process under the launcher")
+        return role_pid(self.proc.pid, role)
 
     def truth_z(self) -> float:
         return self.probe.get("truth")[-1].pos_enu_m[2]
@@ -255,7 +250,8 @@ def test_the_vehicles_telemetry_is_on_the_dashboard(flight):
     from playwright.sync_api import sync_playwright
 
     from tests.browser.chromium import launch
-    from tests.browser.test_dashboard import open_dashboard, tab, wait_text
+    from tests.browser.chromium import open_dashboard
+    from tests.browser.test_dashboard import tab, wait_text
 
     with sync_playwright() as pw:
         browser = launch(pw)

@@ -16,7 +16,7 @@ import pytest
 from recordings.reader import read_recording, verify
 from runtime.client import command
 from runtime.schema import Keys
-from tests.busutil import Collector, children_of, free_port, neso, peer, session
+from tests.busutil import Collector, free_port, neso, peer, role_pid, session
 
 SAMPLED = ("state", "truth", "estimate", "setpoint", "reference")
 KEYS = Keys("uav1")
@@ -38,12 +38,7 @@ class RecordedFlight:
             self.output.append(line)
 
     def pid_of(self, role: str) -> int:
-        for pid in children_of(self.proc.pid):
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                argv = f.read().split(b"\0")
-            if b"run" in argv and argv[argv.index(b"run") + 1] == role.encode():
-                return pid
-        raise AssertionError(f"no {role} process under the launcher")
+        return role_pid(self.proc.pid, role)
 
     def close(self):
         self._cm.__exit__(None, None, None)
