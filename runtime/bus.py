@@ -55,6 +55,7 @@ class BusConfig:
             # restarted while others run was measured missing a direct link otherwise, and then lost
             # its traffic when the hub died.
             "scouting/gossip/autoconnect_strategy": {"peer": {"to_router": "always", "to_peer": "always"}},
+            "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router", "peer"]},
             "connect/endpoints": list(self.connect),
             "listen/endpoints": list(self.listen),
             "connect/retry": {

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+import uuid
 
 from runtime.schema import CommandReply, CommandRequest, Keys, ParamReply, ParamRequest, SchemaError
 
@@ -12,8 +13,9 @@ class ServiceUnavailable(RuntimeError):
 
 def _query(session, key: str, payload: bytes, reply_type, timeout_s: float, attempt_s: float = 0.25):
     """The first reply to a query on ``key``. A session that has just opened may not know the
-    service's queryable yet, so the query is repeated every ``attempt_s`` until ``timeout_s``
-    (requests here are idempotent: a get, or a set of absolute values)."""
+    service's queryable yet, or the answer may take longer, so the query is repeated every
+    ``attempt_s`` until ``timeout_s`` (a get or a set of absolute values is idempotent; a command
+    carries a request id the service answers once, :class:`runtime.node.AnsweredOnce`)."""
     deadline = time.monotonic() + timeout_s
     while True:
         for reply in session.get(key, payload=payload, timeout=attempt_s):
@@ -37,5 +39,8 @@ def set_params(session, keys: Keys, service: str, values: dict, timeout_s: float
 
 def command(session, keys: Keys, service: str, name: str, args: dict | None = None,
             timeout_s: float = 2.0) -> CommandReply:
-    return _query(session, keys.cmd(service), CommandRequest(name=name, args=args or {}).to_bytes(), CommandReply,
+    """Ask ``service`` to do ``name``. The request carries a fresh ``request`` id (unless ``args``
+    has one), so the service does it once however often the query is repeated."""
+    args = {"request": uuid.uuid4().hex, **(args or {})}
+    return _query(session, keys.cmd(service), CommandRequest(name=name, args=args).to_bytes(), CommandReply,
                   timeout_s)

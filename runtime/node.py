@@ -29,6 +29,44 @@ from runtime.schema import (CommandReply, CommandRequest, EventMsg, Keys, Messag
 
 HEALTH_PERIOD_S = 1.0
 CommandHandler = Callable[[str, dict], tuple[bool, str]]
+FAILED = (False, "command failed (see events)")
+
+
+class AnsweredOnce:
+    """Commands by request id, each done once. A client repeats a query it got no answer to in
+    time (:func:`runtime.client.command`); a repeat of a finished request gets the first answer,
+    a repeat of one still running waits up to ``wait_s`` for it (then no answer: the client asks
+    again; the wait is short because it holds one of Zenoh's threads). Without this a slow command (a vehicle's acknowledgement, a file read) would run
+    once per retry, and a second rollback would undo the first. Keeps the last ``keep`` answers."""
+
+    def __init__(self, keep: int = 256) -> None:
+        self._lock = threading.Lock()
+        self._done: dict[str, tuple[bool, str]] = {}
+        self._running: dict[str, threading.Event] = {}
+        self._keep = keep
+
+    def run(self, request_id: str, fn: Callable[[], tuple[bool, str]], wait_s: float = 0.05):
+        """``fn()``'s answer, or the first answer to ``request_id``; None if it is still running."""
+        with self._lock:
+            if request_id in self._done:
+                return self._done[request_id]
+            running = self._running.get(request_id)
+            if running is None:
+                self._running[request_id] = threading.Event()
+        if running is not None:
+            running.wait(wait_s)
+            with self._lock:
+                return self._done.get(request_id)
+        result = FAILED
+        try:
+            result = fn()
+        finally:
+            with self._lock:
+                self._done[request_id] = result
+                while len(self._done) > self._keep:
+                    self._done.pop(next(iter(self._done)))
+                self._running.pop(request_id).set()
+        return result
 
 
 def describe_config(config: Any) -> str:
@@ -52,6 +90,7 @@ class Node:
         self.status_hook: Callable[[], str] | None = None
         self._command_handler: CommandHandler | None = None
         self._unlocked_commands: frozenset[str] = frozenset()
+        self._answered = AnsweredOnce()
         self._stop = threading.Event()
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
@@ -138,13 +177,23 @@ class Node:
             self.stats.reject("cmd", str(exc))
             query.reply_err(CommandReply(ok=False, service=self.service, message=str(exc)).to_bytes())
             return
+        args = {k: v for k, v in request.args.items() if k != "request"}
         if self._command_handler is None:
             ok, message = False, f"{self.service} takes no commands"
         else:
-            with contextlib.nullcontext() if request.name in self._unlocked_commands else self.lock:
-                result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, request.args)
-            ok, message = result if result is not None else (False, "command failed (see events)")
-        self.log(f"command {request.name} {request.args}: " + ("ok" if ok else "refused") + (f": {message}" if message else ""))
+            def execute() -> tuple[bool, str]:
+                with contextlib.nullcontext() if request.name in self._unlocked_commands else self.lock:
+                    result = self._guarded(f"cmd {request.name}", self._command_handler, request.name, args)
+                return result if result is not None else FAILED
+            request_id = request.args.get("request")
+            if isinstance(request_id, str) and request_id:
+                answer = self._answered.run(request_id, execute)
+                if answer is None:
+                    return  # the first of these is still running: no answer now, the client asks again
+                ok, message = answer
+            else:
+                ok, message = execute()
+        self.log(f"command {request.name} {args}: " + ("ok" if ok else "refused") + (f": {message}" if message else ""))
         query.reply(query.key_expr, CommandReply(ok=ok, service=self.service, message=message).to_bytes())
 
     def broadcast_params(self, seq: int, note: str = "") -> None:

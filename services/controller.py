@@ -39,14 +39,18 @@ _NEEDS_ARMING = ("takeoff", "hover", "landing_test", "lemniscate")
 class ControllerConfig:
     """``mission``: command started at the first sample of a flight (``idle``: wait for one).
     ``stale_timeout_s``: how long the newest sample may wait for its estimate before the local
-    ESO takes over (default 3 periods). ``warmup_ticks``: samples a (re)started estimator must
-    have run before its estimates are used again."""
+    ESO takes over (default 3 periods); ``stale_samples``: it also takes over at the arrival of a
+    sample when this many before it went unanswered (0: by time only). The count acts on the
+    sample itself, where the time check waits for the watchdog thread, which a loaded machine
+    may wake late. ``warmup_ticks``: samples a (re)started estimator must have run before its
+    estimates are used again."""
 
     control: ControlConfig = field(default_factory=ControlConfig)
     mission: str = "hover"
     missions: MissionConfig = field(default_factory=MissionConfig)
     omega_o_rps: float = 15.0  # the local ESO's bandwidth
     stale_timeout_s: float = 0.06
+    stale_samples: int = 3
     warmup_ticks: int = 25
 
 
@@ -134,7 +138,10 @@ class ControllerCore:
             return self._step(local_f_hat=True, now_s=now_s)
         if state.seq in self._estimates:
             return self._step(local_f_hat=False, now_s=now_s)
+        if 0 < self.config.stale_samples < state.seq - self._last_stepped and self._last_stepped >= 0:
+            return self.check_stale(now_s, unanswered=state.seq - self._last_stepped - 1)
         return []
+
 
     def on_estimate(self, est: EstimateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
         if est.seq < self._last_stepped:
@@ -151,14 +158,16 @@ class ControllerCore:
             return self._step(local_f_hat=False, now_s=now_s)
         return []
 
-    def check_stale(self, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        """Watchdog: no sample answered for ``stale_timeout_s`` → the local ESO flies the newest."""
+    def check_stale(self, now_s: float, unanswered: int = 0) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
+        """Watchdog: no sample answered for ``stale_timeout_s`` (or ``unanswered`` samples before
+        the newest, see ``stale_samples``) → the local ESO flies the newest."""
         p = self._pending
-        if self.using_local or p is None or now_s - p.waiting_since_s < self.config.stale_timeout_s:
+        if self.using_local or p is None or (not unanswered and now_s - p.waiting_since_s < self.config.stale_timeout_s):
             return []
         self.using_local = True
+        why = f"{unanswered} samples" if unanswered else f"{self.config.stale_timeout_s * 1e3:.0f} ms"
         self.events.append(("warning", f"no estimate for sample {p.state.seq} and the ones before it within "
-                                       f"{self.config.stale_timeout_s * 1e3:.0f} ms: flying on the local ESO"))
+                                       f"{why}: flying on the local ESO"))
         return self._step(local_f_hat=True, now_s=now_s)
 
     # -- internals ----------------------------------------------------------------------
@@ -237,9 +246,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args) -> ControllerConfig:
     dt = 1.0 / args.rate
     # at high rates a few periods are shorter than one scheduling hiccup of a 2-core VM: floor 20 ms
-    stale = 2.0 if getattr(args, "lockstep", False) else max(args.stale_periods * dt, 0.02)
+    lockstep = getattr(args, "lockstep", False)
+    stale = 2.0 if lockstep else max(args.stale_periods * dt, 0.02)
     return ControllerConfig(control=replace(ControlConfig(), dt_s=dt), mission=args.mission, omega_o_rps=args.omega_o,
-                            stale_timeout_s=stale)
+                            stale_timeout_s=stale, stale_samples=0 if lockstep else max(1, round(stale / dt)))
 
 
 def run(args, bus) -> int:

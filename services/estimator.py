@@ -28,8 +28,9 @@ when refused, and a refusal leaves the active network flying):
 - ``rollback``: the previous network flies again, the same bumpless way.
 - ``reject``: drop the candidate.
 
-Every command takes an optional ``request`` id (any string): a repeat of the same id (a client
-retrying a query that timed out) gets the first answer and does nothing again.
+A retried command is done once: ``runtime.client.command`` sends a request id and the node
+answers a repeat with the first answer (:class:`runtime.node.AnsweredOnce`), so a second
+rollback never undoes the first.
 
 ``NetworkMsg`` on ``neso/<v>/network``: once a second and on every change.
 """
@@ -359,21 +360,6 @@ def run(args, bus) -> int:
         put_network(core.network_msg())
         published_changes[0] = core.changes
 
-    answered: dict[str, tuple[bool, str]] = {}
-
-    def on_command(name: str, cmd_args: dict) -> tuple[bool, str]:
-        # A client repeats a query it got no answer to in time: with a ``request`` id, a repeat gets
-        # the first answer instead of doing it twice (a second rollback would undo the first).
-        request = cmd_args.get("request")
-        if isinstance(request, str) and request in answered:
-            return answered[request]
-        result = swap_command(name, {k: v for k, v in cmd_args.items() if k != "request"})
-        if isinstance(request, str):
-            if len(answered) > 256:
-                answered.clear()
-            answered[request] = result
-        return result
-
     def swap_command(name: str, cmd_args: dict) -> tuple[bool, str]:
         if name == "offer":
             path = cmd_args.get("path")
@@ -409,6 +395,6 @@ def run(args, bus) -> int:
 
     node.subscribe("state", on_state)
     node.subscribe("setpoint", on_setpoint)
-    node.on_command(on_command, unlocked=("offer", "promote", "rollback", "reject"))
+    node.on_command(swap_command, unlocked=("offer", "promote", "rollback", "reject"))
     node.status_hook = lambda: f"ok, pathway {core.estimator.pathway}, network {core.network_id}"
     return run_node(node, network_loop)

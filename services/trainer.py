@@ -14,7 +14,7 @@ and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
   ``offer`` (true: send the result to the estimator's gate); ``seed`` (0).
 - ``status``: what the worker is doing and the last result.
 
-Both take an optional ``request`` id: a repeated id gets the first answer (no second job).
+A retried ``train`` is queued once (the node answers a repeated request id with the first answer).
 
 Each job ends with an event ``job <n> done: …`` (network id, registry path, val loss, bounds,
 small-gain verdict, stage times, the estimator's answer to the offer) or ``job <n> failed: …``.
@@ -206,19 +206,6 @@ def run(args, bus) -> int:
             return False, str(exc)
         return reply.ok, reply.message
 
-    answered: dict[str, tuple[bool, str]] = {}
-
-    def on_command(name: str, cmd_args: dict) -> tuple[bool, str]:
-        request = cmd_args.get("request")
-        if isinstance(request, str) and request in answered:
-            return answered[request]  # a retried query: do not queue the job twice
-        result = trainer_command(name, {k: v for k, v in cmd_args.items() if k != "request"})
-        if isinstance(request, str):
-            if len(answered) > 256:
-                answered.clear()
-            answered[request] = result
-        return result
-
     def trainer_command(name: str, cmd_args: dict) -> tuple[bool, str]:
         if name == "status":
             return True, f"{state['doing']}; queued {jobs.qsize()}; last: {state['last'] or 'none'}"
@@ -251,6 +238,6 @@ def run(args, bus) -> int:
             state["doing"] = "idle"
 
     node.subscribe("network", on_network)
-    node.on_command(on_command)
+    node.on_command(trainer_command)
     node.status_hook = lambda: f"ok, {state['doing']}, queued {jobs.qsize()}"
     return run_node(node, worker)

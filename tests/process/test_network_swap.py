@@ -11,7 +11,6 @@ import signal
 import subprocess
 import threading
 import time
-import uuid
 
 import numpy as np
 import pytest
@@ -54,7 +53,7 @@ class Flight:
                                              lambda smp: self.events.append(EventMsg.from_bytes(smp.payload.to_bytes())))
 
     def cmd(self, name, **args):
-        return command(self.s, KEYS, "estimator", name, dict(args, request=uuid.uuid4().hex), timeout_s=5.0)
+        return command(self.s, KEYS, "estimator", name, args, timeout_s=5.0)
 
     def latest(self, topic):
         return self.probe.get(topic)[-1]

@@ -133,6 +133,20 @@ def test_controller_falls_back_to_its_local_eso_when_the_estimate_is_stale_and_r
     assert sp.estimate_source == "estimator"
 
 
+def test_controller_falls_back_at_the_sample_after_three_unanswered_ones_without_its_watchdog():
+    """A late watchdog thread (a loaded machine) must not delay the fallback: the fourth sample
+    in a row without an estimate is flown on the local ESO when it arrives."""
+    core = ControllerCore(ControllerConfig(stale_timeout_s=0.06, stale_samples=3))
+    t = 0.0
+    for k in range(10):
+        core.on_state(state(k), t)
+        core.on_estimate(estimate(k), t + 0.001)
+        t += 0.02
+    assert [core.on_state(state(k), t + 0.02 * (k - 10)) for k in (10, 11, 12)] == [[], [], []]
+    (sp, _), = core.on_state(state(13), t + 0.06)
+    assert sp.seq == 13 and sp.estimate_source == "local_eso"
+
+
 def test_controller_gain_change_keeps_the_force_continuous():
     core = ControllerCore(ControllerConfig())
     core.on_state(state(0, z=0.9), 0.0)
