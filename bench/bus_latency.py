@@ -45,13 +45,13 @@ _SOURCE_DONE = re.compile(r"\[source\] done: (\d+) samples, .*deadline misses (\
 _SOURCE_STATUS = re.compile(r"sample (-?\d+), deadline misses (\d+)")
 
 
-def _stats_us(latency_s) -> tuple[str, str, str, str]:
-    """(samples, p50, p99, max) of latencies in seconds, as µs strings."""
-    us = np.asarray(latency_s) * 1e6
-    if us.size == 0:
+def latency_stats(latency_s, scale: float = 1e6, fmt: str = ".0f") -> tuple[str, str, str, str]:
+    """(samples, p50, p99, max) of latencies in seconds as strings, in µs (``scale`` 1e3: ms)."""
+    x = np.asarray(latency_s) * scale
+    if x.size == 0:
         return "0", "-", "-", "-"
-    p50, p99 = np.percentile(us, [50, 99])
-    return str(us.size), f"{p50:.0f}", f"{p99:.0f}", f"{us.max():.0f}"
+    p50, p99 = np.percentile(x, [50, 99])
+    return str(x.size), f"{p50:{fmt}}", f"{p99:{fmt}}", f"{x.max():{fmt}}"
 
 
 def _paced(rate_hz: float, n: int, send) -> None:
@@ -234,7 +234,7 @@ def bus_latency_rows(flight_s: float, floor_s: float) -> list[tuple[str, ...]]:
     step_s = sim_step_s(500.0)
     share = float(np.percentile(step_s, 99)) * 500.0  # p99 as a fraction of the 2 ms period
     verdict = "keeps up" if share < STEP_BUDGET else f"TOO SLOW (p99 ≥ {STEP_BUDGET:.0%} of the period)"
-    rows: list[tuple[str, ...]] = [("sim source tick at 500 Hz (step + encode)", *_stats_us(step_s),
+    rows: list[tuple[str, ...]] = [("sim source tick at 500 Hz (step + encode)", *latency_stats(step_s),
                                     f"p99 = {share:.1%} of the 2 ms period: {verdict}")]
     p99_us: dict[str, float] = {}
     for rate_hz in RATES_HZ:
@@ -242,7 +242,7 @@ def bus_latency_rows(flight_s: float, floor_s: float) -> list[tuple[str, ...]]:
         n = round(floor_s * rate_hz)
         for name, measure in (("Zenoh", zenoh_round_trips_s), ("UDP", udp_round_trips_s)):
             rtt_s = measure(rate_hz, n)
-            rows.append((f"{name} ping-pong {rate_hz:g} Hz (round trip)", *_stats_us(rtt_s),
+            rows.append((f"{name} ping-pong {rate_hz:g} Hz (round trip)", *latency_stats(rtt_s),
                          f"> 1 period: {sum(r > period_s for r in rtt_s)}; lost: {n - len(rtt_s)}"))
             if rtt_s:
                 p99_us[f"{name} {rate_hz:g}"] = float(np.percentile(rtt_s, 99) * 1e6)
@@ -252,7 +252,7 @@ def bus_latency_rows(flight_s: float, floor_s: float) -> list[tuple[str, ...]]:
         source = "?" if run.source_misses is None else str(run.source_misses)
         if run.source_misses_after is not None:
             source += f" ({run.source_misses_after} after start)"
-        rows.append((f"pipeline {rate_hz:g} Hz (state → setpoint at probe)", *_stats_us(run.latency_s),
+        rows.append((f"pipeline {rate_hz:g} Hz (state → setpoint at probe)", *latency_stats(run.latency_s),
                      f"misses: probe {run.probe_misses}, source {source}; rate {run.achieved_hz:.1f} Hz"))
     pipe, floor = p99_us.get("pipeline 500"), p99_us.get("Zenoh 500")
     rows.append(("target: pipeline p99 at 500 Hz ≤ 1 ms", "", "", "", "",

@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from bench.bus_latency import latency_stats
 from runtime.bus import BusConfig
 from runtime.schema import EventMsg, Keys, SetpointMsg
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
@@ -36,13 +37,6 @@ WARMUP_S = 3.0
 DOM_SAMPLES = 20
 BROWSERS = 3
 COLUMNS = ("dashboard cost", "samples", "p50 ms", "p99 ms", "max ms", "notes")
-
-
-def _stats_ms(values_s) -> tuple[str, str, str, str]:
-    ms = np.asarray(values_s) * 1e3
-    if ms.size == 0:
-        return "0", "-", "-", "-"
-    return str(ms.size), f"{np.percentile(ms, 50):.2f}", f"{np.percentile(ms, 99):.2f}", f"{ms.max():.2f}"
 
 
 def _fly(flight_s: float, *, browsers: int, dashboard: bool | None = None) -> dict:
@@ -154,13 +148,16 @@ def dashboard_rows(flight_s: float = 12.0) -> list[tuple[str, ...]]:
     runs = {"without dashboard": _fly(flight_s, browsers=0),
             "with dashboard, no page open": _fly(flight_s, browsers=0, dashboard=True),
             with_pages: _fly(flight_s, browsers=BROWSERS)}
+    def ms(latency_s):
+        return latency_stats(latency_s, scale=1e3, fmt=".2f")
+
     for name, run in runs.items():
-        rows.append((f"loop {RATE_HZ:g} Hz {name}: state → setpoint at probe", *_stats_ms(run["pipeline_s"]),
+        rows.append((f"loop {RATE_HZ:g} Hz {name}: state → setpoint at probe", *ms(run["pipeline_s"]),
                      f"misses (> 1 period or lost) {run['misses']}; rate {run['rate_hz']:.1f} Hz"))
-        rows.append(("  controller's own stamp − state stamp", *_stats_ms(run["controller_s"]), ""))
+        rows.append(("  controller's own stamp − state stamp", *ms(run["controller_s"]), ""))
     rows.append(("  dashboard process CPU with the pages", "", "", "", "",
                  f"{runs[with_pages].get('dashboard_cpu', float('nan')) * 100:.0f} % of one core (nice 10); "
                  "Chromium kept at nice 19"))
-    rows.append(("bus → DOM (event published → its text in the page)", *_stats_ms(runs[with_pages]["dom_s"]),
+    rows.append(("bus → DOM (event published → its text in the page)", *ms(runs[with_pages]["dom_s"]),
                  "includes the 10 Hz render period and the browser's frame rate"))
     return rows

@@ -18,18 +18,11 @@ import time
 
 import numpy as np
 
+from bench.bus_latency import latency_stats
 from runtime.schema import Keys, SetpointMsg
 from tests.busutil import free_port, neso, peer, session, stop
 
 COLUMNS = ("gateway latency", "samples", "p50 µs", "p99 µs", "max µs", "notes")
-
-
-def _stats(latency_s) -> tuple[str, str, str, str]:
-    us = np.asarray(latency_s) * 1e6
-    if us.size == 0:
-        return "0", "-", "-", "-"
-    p50, p99 = np.percentile(us, [50, 99])
-    return str(us.size), f"{p50:.0f}", f"{p99:.0f}", f"{us.max():.0f}"
 
 
 def measure(rate_hz: float = 50.0, duration_s: float = 20.0) -> dict:
@@ -109,7 +102,7 @@ def _setpoint(k: int, thrust: float) -> SetpointMsg:
 def gateway_rows(duration_s: float = 20.0, rate_hz: float = 50.0) -> list[tuple[str, ...]]:
     r = measure(rate_hz, duration_s)
     return [
-        (f"setpoint on the bus → SET_ATTITUDE_TARGET at the vehicle, {rate_hz:g} Hz", *_stats(r["vehicle"]),
+        (f"setpoint on the bus → SET_ATTITUDE_TARGET at the vehicle, {rate_hz:g} Hz", *latency_stats(r["vehicle"]),
          f"{r['lost']} of {r['sent']} never arrived"),
-        (f"  bus alone (same setpoints → a probe subscriber)", *_stats(r["bus"]), "Zenoh delivery, for comparison"),
+        (f"  bus alone (same setpoints → a probe subscriber)", *latency_stats(r["bus"]), "Zenoh delivery, for comparison"),
     ]

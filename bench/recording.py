@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.bus_latency import _stats_us, pipeline
+from bench.bus_latency import latency_stats, pipeline
 from tests.busutil import free_port, neso, stop
 
 COLUMNS = ("recording", "samples", "p50 µs", "p99 µs", "max µs", "notes")
@@ -31,7 +31,7 @@ def latency_rows(flight_s: float, rounds: int, workdir: Path) -> list[tuple[str,
     for r in range(rounds):
         for name, extra in (("off", ("--no-record",)), ("on", ("--recordings-dir", str(workdir / f"latency{r}")))):
             run = pipeline(50.0, flight_s, extra)
-            rows.append((f"loop 50 Hz, recorder {name} (round {r + 1})", *_stats_us(run.latency_s),
+            rows.append((f"loop 50 Hz, recorder {name} (round {r + 1})", *latency_stats(run.latency_s),
                          f"misses: probe {run.probe_misses}, source {run.source_misses}; rate {run.achieved_hz:.1f} Hz"))
     return rows
 

@@ -18,13 +18,10 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-import uuid
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -123,7 +120,7 @@ def z_rmse_cm(references, truths, run: tuple[int, int]) -> tuple[float, int]:
 
 
 def analyse(probe, first_run, second_run, swap_seq: int, report: TdrReport) -> TdrReport:
-    """Fill the flight figures of ``report`` from what ``probe`` (a Collector) saw."""
+    """Fill the flight figures of ``report`` from what ``probe`` (a :class:`runtime.probe.Probe`) saw."""
     refs, truths = probe.get("reference"), probe.get("truth")
     report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
     report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
@@ -153,48 +150,6 @@ def analyse(probe, first_run, second_run, swap_seq: int, report: TdrReport) -> T
     report.f_hat_step_at_swap_mps2 = fsteps.get(swap_seq, float("nan"))
     report.f_hat_step_p99_mps2 = float(np.percentile([v for k, v in fsteps.items() if abs(k - swap_seq) > 5], 99))
     return report
-
-
-class _Probe:
-    """Every valid message of some topics of one vehicle, in arrival order."""
-
-    def __init__(self, session, keys, topics) -> None:
-        from runtime.schema import TOPICS, SchemaError
-
-        self._lock = threading.Lock()
-        self.messages: dict[str, list] = {t: [] for t in topics}
-
-        def handler(topic):
-            cls = TOPICS[topic]
-
-            def on_sample(sample):
-                try:
-                    msg = cls.from_bytes(sample.payload.to_bytes())
-                except SchemaError:
-                    return
-                with self._lock:
-                    self.messages[topic].append(msg)
-            return on_sample
-
-        self._subs = [session.declare_subscriber(keys.topic(t), handler(t)) for t in topics]
-
-    def get(self, topic: str) -> list:
-        with self._lock:
-            return list(self.messages[topic])
-
-    def wait_for(self, topic: str, predicate, timeout_s: float):
-        """The newest message of ``topic`` satisfying ``predicate`` (waiting up to ``timeout_s``)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            for msg in reversed(self.get(topic)):
-                if predicate(msg):
-                    return msg
-            time.sleep(0.02)
-        raise TimeoutError(f"no {topic} message satisfying the condition within {timeout_s:g} s")
-
-    def close(self) -> None:
-        for s in self._subs:
-            s.undeclare()
 
 
 class _Events:
@@ -228,6 +183,8 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard)."""
     from runtime.bus import BusConfig, open_session
     from runtime.client import command
+    from runtime.launcher import interrupt
+    from runtime.probe import Probe
     from runtime.schema import Keys
 
     keys = Keys("uav1")
@@ -241,14 +198,14 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     report = TdrReport()
     session = open_session(BusConfig(connect=(hub,)))
     try:
-        probe = _Probe(session, keys, ("state", "truth", "estimate", "setpoint", "reference", "network",
+        probe = Probe(session, keys.vehicle, ("state", "truth", "estimate", "setpoint", "reference", "network",
                                        "recording"))
         events = _Events(session, keys, ("trainer", "estimator", "recorder"))
         if on_up is not None:
             on_up(up)
 
         def cmd(service, name, timeout_s=5.0, **args):
-            return command(session, keys, service, name, dict(args, request=uuid.uuid4().hex), timeout_s=timeout_s)
+            return command(session, keys, service, name, args, timeout_s=timeout_s)
 
         probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
         log("flying the lemniscate under Neural-ESO with the base network, recording")
@@ -303,13 +260,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         return report
     finally:
         session.close()
-        if up.poll() is None:
-            up.send_signal(signal.SIGINT)
-        try:
-            up.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait()
+        interrupt(up, timeout_s=20.0)
         up_log.close()
 
 

@@ -17,11 +17,6 @@ NED_FROM_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 FLU_FROM_FRD = np.diag([1.0, -1.0, -1.0])
 
 
-def wrap_pi(angle_rad: float) -> float:
-    """``angle_rad`` wrapped into [−π, π)."""
-    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
-
-
 def attitude_ned_from_enu(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float, float]:
     """ZYX Euler (rad) of an ENU/FLU attitude, expressed as NED/FRD."""
     r = NED_FROM_ENU @ world_from_body_zyx(roll_rad, pitch_rad, yaw_rad) @ FLU_FROM_FRD

@@ -1,9 +1,9 @@
 """Hot swap of the predictive network in flight: the candidate gate, the shadow error, the swap.
 
 Pure: no files, no bus. The estimator service reads a candidate's bytes and asks :func:`gate`;
-a passed candidate predicts beside the active network (:class:`ShadowError`); on promote the
-observer's extended state absorbs the step (:func:`absorb_step`) so the total estimate
-``f̂ = f_N + Δf̂`` is the same just before and just after the swap.
+a passed candidate predicts beside the active network (:class:`ShadowError`). The swap itself is
+:meth:`neso.estimator.NeuralESO.set_network`: the observer's extended state absorbs the prior's
+step, ``x̂3 ← x̂3 + (f_N,old − f_N,new)``, so ``f̂ = f_N + Δf̂`` is the same just before and after.
 """
 from __future__ import annotations
 
@@ -11,18 +11,10 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from neso.netfile import NetworkFileError, network_from_bytes
 from neso.network import LipschitzMLP
 
 CERT_RTOL = 1e-6
-
-
-def absorb_step(x3: np.ndarray, f_n_old: np.ndarray, f_n_new: np.ndarray) -> np.ndarray:
-    """The observer's extended state after swapping the prior ``f_n_old`` for ``f_n_new`` (m/s²,
-    same shapes): ``x̂3 + (f_N_old − f_N_new)``, so ``f_N_new + x̂3_new == f_N_old + x̂3_old``."""
-    return np.asarray(x3, dtype=float) + (np.asarray(f_n_old, dtype=float) - np.asarray(f_n_new, dtype=float))
 
 
 @dataclass(frozen=True)

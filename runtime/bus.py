@@ -90,3 +90,15 @@ def open_session(config: BusConfig):
     import zenoh
 
     return zenoh.open(config.zenoh_config())
+
+
+def close_session(session, declared: list) -> None:
+    """Undeclare ``declared`` (subscribers, queryables, tokens; newest first, each best effort:
+    one may already be gone with its session) and close ``session``."""
+    for entity in reversed(declared):
+        try:
+            entity.undeclare()
+        except Exception:
+            pass
+    declared.clear()
+    session.close()

@@ -37,6 +37,18 @@ class ProcessSpec:
     nice: int = 0  # CPU niceness from the start (its imports included): >0 for what must not slow the loop
 
 
+def interrupt(proc: subprocess.Popen, timeout_s: float = 15.0) -> None:
+    """Ctrl-C a ``neso up`` (or any group leader started with ``start_new_session``) and wait;
+    SIGKILL its whole process group if it has not ended within ``timeout_s``."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
 class Supervisor:
     def __init__(self, specs: list[ProcessSpec], *, restart_delay_s: float = 0.5, max_restarts: int = 5,
                  stop_timeout_s: float = 2.0, echo=print) -> None:

@@ -20,7 +20,7 @@ import time
 import traceback
 from typing import Any, Callable
 
-from runtime.bus import BusConfig, open_session
+from runtime.bus import BusConfig, close_session, open_session
 from runtime.graph import role as graph_role
 from runtime.health import HealthStats
 from runtime.params import ParamSet
@@ -248,13 +248,7 @@ class Node:
 
     def close(self) -> None:
         self._stop.set()
-        for entity in reversed(self._declared):
-            try:
-                entity.undeclare()
-            except Exception:
-                pass
-        self._declared.clear()
-        self.session.close()
+        close_session(self.session, self._declared)
 
     def stop_on_signals(self) -> None:
         """SIGINT/SIGTERM end :meth:`wait` (call from the main thread)."""

@@ -7,7 +7,7 @@ import time
 from collections import deque
 from typing import Any
 
-from runtime.bus import BusConfig, open_session
+from runtime.bus import BusConfig, close_session, open_session
 from runtime.schema import any_vehicle
 
 
@@ -51,10 +51,4 @@ class Observer:
         return out
 
     def close(self) -> None:
-        for entity in reversed(self._declared):
-            try:
-                entity.undeclare()
-            except Exception:
-                pass
-        self._declared.clear()
-        self.session.close()
+        close_session(self.session, self._declared)

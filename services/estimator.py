@@ -24,7 +24,7 @@ when refused, and a refusal leaves the active network flying):
   the flown f̂ (z axis, last 5 s) is in ``NetworkMsg.shadow_error_rms_mps2``; the active
   network's own error over the same samples is ``candidate["active_error_rms_mps2"]``.
 - ``promote``: the candidate becomes the active network at the next sample; Δf̂ absorbs the
-  step so f̂ is continuous (:func:`neso.hotswap.absorb_step`). The active one becomes ``previous``.
+  step so f̂ is continuous (:meth:`neso.estimator.NeuralESO.set_network`). The active one becomes ``previous``.
 - ``rollback``: the previous network flies again, the same bumpless way.
 - ``reject``: drop the candidate.
 
@@ -318,9 +318,7 @@ def config_from_args(args) -> EstimatorConfig:
 
 
 def run(args, bus) -> int:
-    from runtime.node import Node
-
-    from runtime.node import run_node
+    from runtime.node import Node, run_node
     from runtime.params import ParamSet
 
     config = config_from_args(args)

@@ -1,4 +1,5 @@
-"""Helpers for bus and process tests: free ports, real Zenoh sessions, `neso` subprocesses, collectors."""
+"""Helpers for bus and process tests: free ports, real Zenoh sessions, `neso` subprocesses
+(watching a vehicle's streams is :class:`runtime.probe.Probe`)."""
 from __future__ import annotations
 
 import os
@@ -6,12 +7,9 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
-import time
 from contextlib import contextmanager
 
 from runtime.bus import BusConfig, hub_config, open_session
-from runtime.schema import TOPICS, Keys, SchemaError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -39,45 +37,6 @@ def session(config: BusConfig):
 def hub(endpoint: str):
     with session(hub_config(endpoint)) as s:
         yield s
-
-
-class Collector:
-    """Every valid message of some topics of one vehicle, in arrival order, with arrival times."""
-
-    def __init__(self, s, vehicle: str = "uav1", topics=("state", "truth", "estimate", "setpoint", "reference")):
-        self.keys = Keys(vehicle)
-        self.lock = threading.Lock()
-        self.messages: dict[str, list] = {t: [] for t in topics}
-        self.arrivals: dict[str, list[float]] = {t: [] for t in topics}
-        self.subs = [s.declare_subscriber(self.keys.topic(t), self._handler(t)) for t in topics]
-
-    def _handler(self, topic):
-        cls = TOPICS[topic]
-
-        def on_sample(sample):
-            now = time.monotonic()
-            try:
-                msg = cls.from_bytes(sample.payload.to_bytes())
-            except SchemaError:
-                return
-            with self.lock:
-                self.messages[topic].append(msg)
-                self.arrivals[topic].append(now)
-        return on_sample
-
-    def get(self, topic: str) -> list:
-        with self.lock:
-            return list(self.messages[topic])
-
-    def wait_for(self, topic: str, predicate, timeout_s: float):
-        """The first message of ``topic`` (arriving from now on, or already there) satisfying ``predicate``."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            for msg in reversed(self.get(topic)):
-                if predicate(msg):
-                    return msg
-            time.sleep(0.01)
-        raise AssertionError(f"no {topic} message satisfying the condition within {timeout_s} s")
 
 
 def neso(*args: str, **kwargs) -> subprocess.Popen:

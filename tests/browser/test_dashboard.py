@@ -22,10 +22,11 @@ import pytest
 
 from neso.netfile import save_network
 from runtime.client import command, get_params
+from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
 from tests.unit.test_hotswap import candidate
-from tests.busutil import REPO, Collector, children_of, free_port, neso, peer, session, stop
+from tests.busutil import REPO, children_of, free_port, neso, peer, session, stop
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
 KEYS = Keys("uav1")
@@ -49,7 +50,7 @@ class Flight:
         threading.Thread(target=self._pump, daemon=True).start()
         self._session_cm = session(peer(self.endpoint))
         self.s = self._session_cm.__enter__()
-        self.probe = Collector(self.s)
+        self.probe = Probe(self.s)
 
     def _pump(self):
         for line in self.proc.stdout:

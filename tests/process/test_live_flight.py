@@ -18,8 +18,9 @@ import pytest
 
 from neso.rotations import world_from_body_zyx
 from runtime.client import get_params, set_params
+from runtime.probe import Probe
 from runtime.schema import TOPICS, HealthMsg, Keys, ParamStateMsg, SchemaError
-from tests.busutil import Collector, children_of, free_port, neso, peer, role_pid, session, stop
+from tests.busutil import children_of, free_port, neso, peer, role_pid, session, stop
 
 PERIOD_S = 0.02
 KEYS = Keys("uav1")
@@ -41,7 +42,7 @@ class Flight:
         threading.Thread(target=self._pump, daemon=True).start()
         self._session_cm = session(peer(self.endpoint))
         self.s = self._session_cm.__enter__()
-        self.probe = Collector(self.s)
+        self.probe = Probe(self.s)
         self.health: dict[str, HealthMsg] = {}
         self.param_states: list[ParamStateMsg] = []
         self.subs = [self.s.declare_subscriber(KEYS.every("health"), self._on_health),

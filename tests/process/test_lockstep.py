@@ -8,9 +8,10 @@ from neso.estimator import NeuralEsoConfig
 from neso.methods import build_estimator
 from neso.netfile import load_network
 from neso.trajectories import Landing
+from runtime.probe import Probe
 from sim.runner import fly
 from sim.scenarios import make_scenario
-from tests.busutil import REPO, Collector, free_port, neso, peer, session, stop
+from tests.busutil import REPO, free_port, neso, peer, session, stop
 
 NETWORK = f"{REPO}/networks/base-L1.safetensors"
 
@@ -19,7 +20,7 @@ def test_lockstep_processes_reproduce_the_in_process_runner():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     seed, duration_s = 7, 11.0
     with session(peer(endpoint)) as s:
-        probe = Collector(s)
+        probe = Probe(s)
         token = s.liveliness().declare_token(probe.keys.alive("probe"))
         proc = neso("up", "--lockstep", "--duration", str(duration_s), "--scenario", "nominal_landing",
                     "--mission", "landing_test", "--seed", str(seed), "--network", NETWORK, "--hub", endpoint,

@@ -6,9 +6,6 @@ force, and is rolled back.
 """
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
 import threading
 import time
 
@@ -17,24 +14,15 @@ import pytest
 
 from neso.netfile import network_to_bytes, save_network
 from runtime.client import command
-from runtime.schema import EventMsg, Keys, NetworkMsg
-from tests.busutil import Collector, free_port, neso, peer, session
+from runtime.launcher import interrupt
+from runtime.probe import Probe
+from runtime.schema import EventMsg, Keys
+from tests.busutil import free_port, neso, peer, session
 from tests.process.test_live_flight import PERIOD_S, max_force_step_n
 from tests.unit.helpers import random_network
 from tests.unit.test_hotswap import _nan_weights, _with_stated_bound, candidate, with_meta
 
 KEYS = Keys("uav1")
-
-
-def end(proc) -> None:
-    """Ctrl-C the launcher (its output is being pumped by a thread), kill its group if it hangs."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(15)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
 
 
 class Flight:
@@ -47,7 +35,7 @@ class Flight:
         threading.Thread(target=lambda: self.output.extend(self.proc.stdout), daemon=True).start()
         self._cm = session(peer(self.endpoint))
         self.s = self._cm.__enter__()
-        self.probe = Collector(self.s, topics=("estimate", "setpoint", "network"))
+        self.probe = Probe(self.s, topics=("estimate", "setpoint", "network"))
         self.events: list[EventMsg] = []
         self.sub = self.s.declare_subscriber(KEYS.event("estimator"),
                                              lambda smp: self.events.append(EventMsg.from_bytes(smp.payload.to_bytes())))
@@ -61,7 +49,7 @@ class Flight:
     def close(self):
         self.sub.undeclare()
         self._cm.__exit__(None, None, None)
-        end(self.proc)
+        interrupt(self.proc)  # its output is being pumped by a thread
 
 
 @pytest.fixture(scope="module")

@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 
 from runtime.client import command
+from runtime.probe import Probe
 from runtime.schema import SetpointMsg
-from tests.busutil import Collector, free_port, neso, peer, role_pid, session, stop
+from tests.busutil import free_port, neso, peer, role_pid, session, stop
 
 TOPICS = ("state", "truth", "estimate", "setpoint", "reference", "telemetry")
 HOLD = (4.0, 3.0)  # PX4 main/sub mode of AUTO.LOITER in DO_SET_MODE param2/param3
@@ -49,7 +50,7 @@ class Flight:
         threading.Thread(target=self._pump, daemon=True).start()
         self._cm = session(peer(self.endpoint))
         self.s = self._cm.__enter__()
-        self.probe = Collector(self.s, topics=TOPICS)
+        self.probe = Probe(self.s, topics=TOPICS)
 
     def _pump(self):
         for line in self.proc.stdout:
@@ -213,7 +214,7 @@ def test_controller_killed_mid_hover_the_gateway_holds_within_half_a_second_then
     os.kill(flight.pid_of("controller"), signal.SIGKILL)
     try:
         flight.probe.wait_for("telemetry", lambda m: m.failsafe == "land", 10.0)
-    except AssertionError:
+    except TimeoutError:
         raise AssertionError([line for line in flight.output if "px4_gateway |" in line][-20:],
                              [e for e in flight.commands() if e["t"] >= killed_at]) from None
     flight.probe.wait_for("telemetry", lambda m: m.stamp_s > killed_at and not m.armed, 15.0)

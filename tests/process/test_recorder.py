@@ -15,8 +15,9 @@ import pytest
 
 from recordings.reader import read_recording, verify
 from runtime.client import command
+from runtime.probe import Probe
 from runtime.schema import Keys
-from tests.busutil import Collector, free_port, neso, peer, role_pid, session
+from tests.busutil import free_port, neso, peer, role_pid, session
 
 SAMPLED = ("state", "truth", "estimate", "setpoint", "reference")
 KEYS = Keys("uav1")
@@ -31,7 +32,7 @@ class RecordedFlight:
         threading.Thread(target=self._pump, daemon=True).start()
         self._cm = session(peer(self.endpoint))
         self.s = self._cm.__enter__()
-        self.probe = Collector(self.s, topics=SAMPLED + ("recording",))
+        self.probe = Probe(self.s, topics=SAMPLED + ("recording",))
 
     def _pump(self):
         for line in self.proc.stdout:

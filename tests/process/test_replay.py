@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from recordings.reader import read_recording
-from tests.busutil import Collector, free_port, hub, neso, peer, session, stop
+from runtime.probe import Probe
+from tests.busutil import free_port, hub, neso, peer, session, stop
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
 
@@ -20,8 +21,8 @@ def test_to_bus_publishes_the_recorded_flight_at_its_pace_under_another_name(rer
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     recorded = read_recording(EXAMPLE)
     with hub(endpoint), session(peer(endpoint)) as s:
-        probe = Collector(s, vehicle="replay1")
-        original = Collector(s, vehicle="uav1")
+        probe = Probe(s, vehicle="replay1")
+        original = Probe(s, vehicle="uav1")
         time.sleep(0.3)
         proc = neso("replay", str(EXAMPLE), "--to-bus", "--speed", "4", "--as", "replay1", "--connect", endpoint)
         try:
