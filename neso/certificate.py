@@ -667,3 +667,49 @@ def verify_certificate(inputs: CertificateInputs, result: CertificateResult, *, 
         return False
     bound = max(k_e, k_o) * 2 * c * c_f / alpha
     return result.ultimate_bound >= bound * (1 - rtol) and result.alpha <= alpha * (1 + rtol)
+
+
+def largest_certified_lipschitz(kp: float, kd: float, omega_o: float) -> float:
+    """The largest physical ``L_N`` ((m/s²) per unit z) the certificate allows for these gains
+    (1/s², 1/s, rad/s): the verdict holds for every smaller bound. Cached per gains."""
+    return certify_tight(CertificateInputs(kp=kp, kd=kd, omega_o=omega_o, lipschitz=0.0),
+                         optimise_bound=False).max_certified_lipschitz
+
+
+@dataclass(frozen=True)
+class FlightCertificate:
+    """The verdict for what flies: a network's certified physical Lipschitz constant against the
+    largest the certificate allows for the z gains and observer bandwidth.
+
+    ``lipschitz_phys``, ``max_certified``: (m/s²) per unit z. ``kp`` 1/s², ``kd`` 1/s, ``omega_o`` rad/s.
+    ``margin``: ``max_certified − lipschitz_phys`` (> 0 iff it holds).
+    """
+
+    holds: bool
+    lipschitz_phys: float
+    max_certified: float
+    kp: float
+    kd: float
+    omega_o: float
+
+    @property
+    def margin(self) -> float:
+        return self.max_certified - self.lipschitz_phys
+
+    def text(self) -> str:
+        verdict = "holds" if self.holds else "FAILS"
+        rel = self.margin / self.max_certified * 100 if self.max_certified > 0 else float("-inf")
+        return (f"certificate {verdict}: L_N {self.lipschitz_phys:.4g} (m/s²)/unit z physical vs {self.max_certified:.4g} "
+                f"certified for kp {self.kp:g}, kd {self.kd:g}, ω_o {self.omega_o:g} (margin {self.margin:+.4g}, {rel:+.0f} %)")
+
+    def to_dict(self) -> dict:
+        return {"holds": self.holds, "lipschitz_phys": self.lipschitz_phys, "max_certified": self.max_certified,
+                "margin": self.margin, "kp": self.kp, "kd": self.kd, "omega_o": self.omega_o, "text": self.text()}
+
+
+def flight_certificate(lipschitz_phys: float, *, kp: float, kd: float, omega_o: float) -> FlightCertificate:
+    """The certificate for a network of physical Lipschitz constant ``lipschitz_phys`` flown with these
+    z gains (the planar axes carry no network: ``L_N = 0`` there, which every positive gain certifies)."""
+    lmax = largest_certified_lipschitz(float(kp), float(kd), float(omega_o))
+    return FlightCertificate(bool(lipschitz_phys < lmax), float(lipschitz_phys), float(lmax), float(kp), float(kd),
+                             float(omega_o))

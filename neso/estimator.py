@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from neso.eso import EsoConfig, ExtendedStateObserver, transition_matrix
-from neso.features import network_features
+from neso.features import FeatureBuilder
 from neso.network import LipschitzMLP
 from neso.types import StateMeasurement
 
@@ -40,7 +40,8 @@ class AppliedControl:
 
 @dataclass(frozen=True, slots=True)
 class DisturbanceEstimate:
-    """f̂ = f_N + Δf̂, each (3,) in m/s² (ENU). ``f_n`` is the prior actually used, ``z`` the network input."""
+    """f̂ = f_N + Δf̂, each (3,) in m/s² (ENU). ``f_n`` is the prior actually used, ``z`` the network input
+    (the network's feature set; shape (0,) without a network)."""
 
     f_hat: np.ndarray
     f_n: np.ndarray
@@ -96,6 +97,7 @@ class NeuralESO:
         self._offset = np.zeros(3)
         self._prior_in_observer = np.zeros(3)
         self._check_network(network)
+        self._features = _builder(network, config.eso.dt_s)
 
     # -- live changes -------------------------------------------------------------
     def set_pathway(self, pathway: str) -> None:
@@ -117,7 +119,8 @@ class NeuralESO:
     def reset(self, meas: StateMeasurement, thrust_n: float) -> None:
         self.eso.reset(meas.pos_enu_m, meas.vel_enu_mps)
         self._offset = np.zeros(3)
-        self._prior_in_observer = self._observer_prior(self._prior(network_features(meas, thrust_n)))
+        z = self._features.reset(meas, thrust_n) if self._features is not None else _NO_Z
+        self._prior_in_observer = self._observer_prior(self._prior(z))
 
     def _prior(self, z: np.ndarray) -> np.ndarray:
         f_n = np.zeros(3)
@@ -147,18 +150,25 @@ class NeuralESO:
     def update(self, meas: StateMeasurement, applied: AppliedControl) -> DisturbanceEstimate:
         self.eso.update(meas.pos_enu_m, applied.acc_cmd_enu_mps2 + self._prior_in_observer)
         self._offset *= self._decay
-        z = network_features(meas, applied.thrust_n)
+        z = self._features.build(meas, applied.thrust_n) if self._features is not None else _NO_Z
         f_n_all = self._prior(z)
         f_n, delta = self._compose(f_n_all)
         if self._pending_pathway is not None or self._pending_network is not None:
-            f_n, delta, f_n_all = self._apply_pending(z, f_n + delta)
+            f_n, delta, f_n_all, z = self._apply_pending(meas, applied, z, f_n + delta)
         self._prior_in_observer = self._observer_prior(f_n_all)
         return DisturbanceEstimate(f_hat=f_n + delta, f_n=f_n, delta_f_hat=delta, pathway=self.pathway, z=z)
 
-    def _apply_pending(self, z: np.ndarray, f_hat_before: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _apply_pending(self, meas: StateMeasurement, applied: AppliedControl, z: np.ndarray,
+                       f_hat_before: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Switch pathway and/or network so that f̂ at this sample equals ``f_hat_before``."""
         if self._pending_network is not None:
             (self.network,) = self._pending_network
+            self._features = _builder(self.network, self.config.eso.dt_s)
+            if self._features is not None:  # its own inputs, the applied-thrust model started where it stands
+                self._features.reset(meas, applied.thrust_n)
+                z = self._features.build(meas, applied.thrust_n)
+            else:
+                z = _NO_Z
         if self._pending_pathway is not None:
             self.pathway = self._pending_pathway
         self._pending_network = None
@@ -169,14 +179,24 @@ class NeuralESO:
         used_prior = f_n_all[axes] if _USES_PRIOR[self.pathway] else 0.0
         self._offset[axes] = 0.0 if _USES_ESO[self.pathway] else f_hat_before[axes] - used_prior
         f_n, delta = self._compose(f_n_all)
-        return f_n, delta, f_n_all
+        return f_n, delta, f_n_all, z
+
+
+_NO_Z = np.zeros(0)
+
+
+def _builder(network: LipschitzMLP | None, dt_s: float) -> FeatureBuilder | None:
+    """The features ``network`` was trained on (its file's feature set and thrust lag)."""
+    if network is None:
+        return None
+    return FeatureBuilder(network.feature_set, network.thrust_lag, dt_s)
 
 
 class NeuralObserver:
     """Single-pathway neural observer (Liu et al. 2023): a network replaces the ESO's extended state.
 
     On the network axes a second-order observer x̂̇1 = x̂2 + l1·ỹ, x̂̇2 = b + h(ẑ) + l2·ỹ runs
-    with the network evaluated on the *observer's* states (ẑ = [x̂1, x̂2, T, φ, θ]) and
+    with the network evaluated on the *observer's* states (its feature set with x̂1, x̂2 for p_z, v_z) and
     f̂ = h(ẑ): no extended state, so no online correction of the network's error. Discrete
     like the ESO: ZOH prediction and a current-observer correction with the double pole at
     e^{−ω_o Δ}. The planar axes run the plain ESO as for every other method.
@@ -194,9 +214,13 @@ class NeuralObserver:
         self._axes = list(config.network_axes)
         self._x = np.zeros((2, len(self._axes)))
         self._f_n = np.zeros(len(self._axes))
+        self._features = _builder(network, dt)
+        columns = network.feature_set.columns
+        self._observed = [(columns.index(c), row) for row, c in enumerate(("pos_z_m", "vel_z_mps")) if c in columns]
 
     def reset(self, meas: StateMeasurement, thrust_n: float) -> None:
         self.planar.reset(meas, thrust_n)
+        self._features.reset(meas, thrust_n)
         self._x = np.vstack((meas.pos_enu_m[self._axes], meas.vel_enu_mps[self._axes]))
         self._f_n = np.zeros(len(self._axes))
 
@@ -206,9 +230,10 @@ class NeuralObserver:
         predicted = self._phi @ self._x + np.outer(self._gamma, b)
         innovation = meas.pos_enu_m[self._axes] - predicted[0]
         self._x = predicted + np.outer(self._gains, innovation)
-        z = network_features(meas, applied.thrust_n)
+        z = self._features.build(meas, applied.thrust_n)
         z_obs = z.copy()
-        z_obs[0], z_obs[1] = self._x[0, -1], self._x[1, -1]
+        for column, row in self._observed:
+            z_obs[column] = self._x[row, -1]
         self._f_n = np.atleast_1d(self.network.predict(z_obs))
         f_n = np.zeros(3)
         f_n[self._axes] = self._f_n

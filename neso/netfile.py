@@ -10,12 +10,15 @@ Tensors: ``layers.{i}.weight`` (n_out_i, n_in_i), ``layers.{i}.bias`` (n_out_i,)
 
 Metadata owned by the format (computed on save, overriding any same-named key of the network's
 own metadata, and stripped from ``LipschitzMLP.metadata`` on load): ``format``,
-``format_version``, ``n_layers``, ``lipschitz_bound_normalised``, ``lipschitz_bound_physical``,
-``certified_lipschitz_normalised``, ``certified_lipschitz_physical``. Every other key is the
-network's own metadata (id, validation loss, training data reference, ...) and round-trips.
+``format_version``, ``n_layers``, ``lipschitz_bound`` with ``lipschitz_bound_units``
+(``normalised`` or ``physical``), ``lipschitz_bound_physical``, ``certified_lipschitz_normalised``,
+``certified_lipschitz_physical``. Version 1 files stated ``lipschitz_bound_normalised`` only and
+still load. Every other key is the network's own metadata (id, ``feature_set``, thrust lag,
+validation loss, training data reference, certificate, ...) and round-trips.
 
-Loading is a gate: anything malformed, non-finite, inconsistent, or whose exact SVD certificate
-exceeds its stated bound raises ``NetworkFileError`` naming the reason.
+Loading is a gate: anything malformed, non-finite, inconsistent, a feature set this version
+cannot build (or whose size is not the network's), or an exact SVD certificate above its stated
+bound raises ``NetworkFileError`` naming the reason.
 """
 from __future__ import annotations
 
@@ -27,14 +30,16 @@ import tempfile
 
 import numpy as np
 
-from neso.network import LipschitzMLP
+from neso.features import FeatureSetError
+from neso.network import BOUND_UNITS, LipschitzMLP
 
 FORMAT = "neso-lipschitz-mlp"
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
+READABLE_VERSIONS = ("1", "2")
 CERT_RTOL = 1e-6
 MAX_HEADER_BYTES = 100_000_000  # safetensors' own cap
 RESERVED_KEYS = frozenset({
-    "format", "format_version", "n_layers",
+    "format", "format_version", "n_layers", "lipschitz_bound", "lipschitz_bound_units",
     "lipschitz_bound_normalised", "lipschitz_bound_physical",
     "certified_lipschitz_normalised", "certified_lipschitz_physical",
 })
@@ -64,7 +69,8 @@ def network_to_bytes(net: LipschitzMLP) -> bytes:
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "n_layers": str(net.n_layers),
-        "lipschitz_bound_normalised": repr(float(net.lipschitz_bound)),
+        "lipschitz_bound": repr(float(net.lipschitz_bound)),
+        "lipschitz_bound_units": net.bound_units,
         "lipschitz_bound_physical": repr(net.lipschitz_bound_physical()),
         "certified_lipschitz_normalised": repr(net.certified_lipschitz_normalised()),
         "certified_lipschitz_physical": repr(net.certified_lipschitz_physical()),
@@ -120,8 +126,9 @@ def _metadata(header: dict) -> dict[str, str]:
         raise NetworkFileError("header __metadata__ missing or not a str -> str map")
     if meta.get("format") != FORMAT:
         raise NetworkFileError(f"wrong format {meta.get('format')!r}, expected {FORMAT!r}")
-    if meta.get("format_version") != FORMAT_VERSION:
-        raise NetworkFileError(f"unsupported format_version {meta.get('format_version')!r}, expected {FORMAT_VERSION!r}")
+    if meta.get("format_version") not in READABLE_VERSIONS:
+        raise NetworkFileError(f"unsupported format_version {meta.get('format_version')!r}, this version reads "
+                               f"{', '.join(READABLE_VERSIONS)}")
     return meta
 
 
@@ -165,12 +172,16 @@ def network_from_bytes(data: bytes, *, expected_inputs: int | None = None,
         raise NetworkFileError(f"metadata n_layers {meta.get('n_layers')!r} is not an integer") from None
     if n_layers < 1:
         raise NetworkFileError(f"metadata n_layers {n_layers} must be >= 1")
+    bound_key = "lipschitz_bound" if meta["format_version"] != "1" else "lipschitz_bound_normalised"
+    units = meta.get("lipschitz_bound_units", "normalised")
+    if units not in BOUND_UNITS:
+        raise NetworkFileError(f"metadata lipschitz_bound_units {units!r} is not one of {BOUND_UNITS}")
     try:
-        bound = float(meta.get("lipschitz_bound_normalised", ""))
+        bound = float(meta.get(bound_key, ""))
     except ValueError:
-        raise NetworkFileError("metadata lipschitz_bound_normalised missing or not a number") from None
+        raise NetworkFileError(f"metadata {bound_key} missing or not a number") from None
     if not (math.isfinite(bound) and bound > 0):
-        raise NetworkFileError(f"metadata lipschitz_bound_normalised {bound} must be finite and > 0")
+        raise NetworkFileError(f"metadata {bound_key} {bound} must be finite and > 0")
 
     names = [f"layers.{i}.{p}" for i in range(n_layers) for p in ("weight", "bias")]
     names += ["input_mean", "input_std", "output_mean", "output_std"]
@@ -205,14 +216,18 @@ def network_from_bytes(data: bytes, *, expected_inputs: int | None = None,
     own_meta = {k: v for k, v in meta.items() if k not in RESERVED_KEYS}
     try:
         net = LipschitzMLP(tuple(ws), tuple(bs), t["input_mean"], t["input_std"],
-                           t["output_mean"], t["output_std"], bound, own_meta)
+                           t["output_mean"], t["output_std"], bound, own_meta, units)
+        net.feature_set  # noqa: B018 - a file must say inputs this version can build
+        net.thrust_lag  # noqa: B018
+    except FeatureSetError as exc:
+        raise NetworkFileError(f"inputs refused: {exc}") from None
     except ValueError as exc:  # checks above should have caught everything; keep the gate closed
         raise NetworkFileError(f"network invalid: {exc}") from None
-    cert = net.certified_lipschitz_normalised()
+    cert = net.certified_lipschitz()
     if cert > bound * (1.0 + CERT_RTOL):
         raise NetworkFileError(
             f"certificate fails: exact spectral-norm product {cert!r} exceeds stated bound "
-            f"lipschitz_bound_normalised={bound!r}")
+            f"{bound!r} ({units})")
     return net
 
 

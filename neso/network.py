@@ -1,12 +1,23 @@
 """Lipschitz-bounded ReLU MLP ``h(z)``: the Neural-ESO predictive pathway, pure numpy.
 
 Units. The network is trained on z-scored inputs and labels. ``predict`` takes and returns
-physical units (whatever the training data used: m, m/s, N, rad in; m/s^2 out for the paper's
+physical units (m, m/s, N, rad in, as the network's feature set says; m/s² out for the
 disturbance label); internally ``zn = (z - input_mean) / input_std``, ``y = output_mean +
-output_std * h_n(zn)``. The Lipschitz bound ``L_N`` the network was trained to is stated in
-*normalised* units (the paper's ``||h||_Lip <= L_N``); the physical constant is
-``L_N * max(output_std) / min(input_std)`` (output unit per input unit, mixed SI), which is what
-the small-gain condition needs (DESIGN.md "Lipschitz units").
+output_std * h_n(zn)``.
+
+Two Lipschitz constants, both certified from the weights by exact SVD products (ReLU is
+1-Lipschitz):
+
+* *normalised*, ``∏ ‖W_i‖``: the paper's ``||h||_Lip <= L_N`` on the z-scored map;
+* *physical*, ``∏ ‖W̃_i‖`` with the z-scores folded into the end layers,
+  ``W̃_1 = W_1 diag(1/σ_z)`` and ``W̃_n = diag(σ_y) W_n``: (m/s²) per unit of the mixed-SI
+  input (Euclidean norm), what the small-gain certificate needs (DESIGN.md "Lipschitz units").
+  It is never above the loose ``L_N·max σ_y/min σ_z``: a roll angle with σ = 0.024 rad no
+  longer inflates a bound on an input the network barely uses.
+
+A network states its bound in one of the two (``bound_units``): the paper's networks in
+normalised units, this project's default networks in physical units (trained to the largest
+bound the certificate allows for the gains flown).
 
 No torch here: this module runs in the control loop.
 """
@@ -15,6 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from neso.features import LEGACY_FEATURE_SET, FeatureSet, FeatureSetError, ThrustLag, feature_set
 
 
 def _readonly_f64(a, name: str, ndim: int) -> np.ndarray:
@@ -25,9 +38,21 @@ def _readonly_f64(a, name: str, ndim: int) -> np.ndarray:
     return arr
 
 
+BOUND_UNITS = ("normalised", "physical")
+
+
 def spectral_norms(weights) -> tuple[float, ...]:
     """Exact largest singular value of each weight matrix (SVD)."""
     return tuple(float(np.linalg.norm(w, ord=2)) for w in weights)
+
+
+def fold_scalers(weights, input_std: np.ndarray, output_std: np.ndarray) -> list[np.ndarray]:
+    """The weight matrices with the z-scores folded in: ``W_1 diag(1/σ_z)`` first, ``diag(σ_y) W_n``
+    last (both for a single layer). Biases do not change a Lipschitz constant."""
+    ws = [np.asarray(w, dtype=float) for w in weights]
+    ws[0] = ws[0] / np.asarray(input_std)[None, :]
+    ws[-1] = np.asarray(output_std)[:, None] * ws[-1]
+    return ws
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,8 +61,9 @@ class LipschitzMLP:
 
     ``weights[i]`` has shape ``(n_out_i, n_in_i)`` (torch ``nn.Linear`` layout), ``biases[i]``
     shape ``(n_out_i,)``. ``input_mean``/``input_std`` shape ``(n_in,)``, ``output_mean``/
-    ``output_std`` shape ``(n_out,)``, physical units. ``lipschitz_bound`` is ``L_N`` in
-    normalised units. Arrays are copied to read-only float64 on construction; shapes are checked.
+    ``output_std`` shape ``(n_out,)``, physical units. ``lipschitz_bound`` is the stated bound in
+    ``bound_units`` (``normalised``: the paper's ``L_N``; ``physical``: (m/s²) per unit z). Arrays
+    are copied to read-only float64 on construction; shapes are checked.
     """
 
     weights: tuple[np.ndarray, ...]
@@ -48,6 +74,7 @@ class LipschitzMLP:
     output_std: np.ndarray
     lipschitz_bound: float
     metadata: dict[str, str] = field(default_factory=dict)
+    bound_units: str = "normalised"
     # Folded parameters for predict(): normalisation absorbed into the first/last layer.
     _fw: tuple[np.ndarray, ...] = field(init=False, repr=False)
     _fb: tuple[np.ndarray, ...] = field(init=False, repr=False)
@@ -83,7 +110,14 @@ class LipschitzMLP:
         bound = float(self.lipschitz_bound)
         if not (np.isfinite(bound) and bound > 0):
             raise ValueError(f"lipschitz_bound must be finite and > 0, got {bound}")
+        if self.bound_units not in BOUND_UNITS:
+            raise ValueError(f"bound_units must be one of {BOUND_UNITS}, got {self.bound_units!r}")
         meta = {str(k): str(v) for k, v in dict(self.metadata).items()}
+        if "feature_set" in meta:
+            fs = feature_set(meta["feature_set"])  # FeatureSetError (a ValueError) names the known ones
+            if fs.size != n_in:
+                raise FeatureSetError(f"feature set {fs.key} has {fs.size} inputs, the network takes {n_in}")
+            meta["feature_set"] = fs.key
 
         # Fold the z-scores: W0' = W0 / std_in, b0' = b0 - W0' mean_in; last layer times std_out.
         fw = [w.copy() for w in ws]
@@ -112,6 +146,22 @@ class LipschitzMLP:
     @property
     def n_layers(self) -> int:
         return len(self.weights)
+
+    @property
+    def feature_set(self) -> FeatureSet:
+        """The input vector the network was trained on (metadata ``feature_set``; files written before
+        feature sets were recorded were trained on the paper's input)."""
+        fs = feature_set(self.metadata.get("feature_set", LEGACY_FEATURE_SET))
+        if fs.size != self.n_inputs:
+            raise FeatureSetError(f"the network takes {self.n_inputs} inputs and declares no feature set "
+                                  f"(the paper's {fs.key} has {fs.size})")
+        return fs
+
+    @property
+    def thrust_lag(self) -> ThrustLag:
+        """The applied-thrust model its ``thrust_applied_n`` input was built with (metadata
+        ``thrust_lag_s``, ``thrust_delay_s``; none: no lag)."""
+        return ThrustLag(float(self.metadata.get("thrust_lag_s", 0.0)), float(self.metadata.get("thrust_delay_s", 0.0)))
 
     @property
     def layer_sizes(self) -> tuple[int, ...]:
@@ -158,17 +208,49 @@ class LipschitzMLP:
         return float(np.prod(spectral_norms(self.weights)))
 
     def certified_lipschitz_physical(self) -> float:
-        """``certified_lipschitz_normalised() * max(output_std) / min(input_std)``: a bound on the
-        physical map's Lipschitz constant in (output unit) per (input unit), with the input
-        components mixing SI units (m, m/s, N, rad) as they come."""
-        return self.certified_lipschitz_normalised() * float(np.max(self.output_std)) / float(np.min(self.input_std))
+        """Upper bound on the physical map's Lipschitz constant, (output unit) per (input unit) with
+        the inputs' mixed SI units as they come: the exact SVD product of the folded weights."""
+        return float(np.prod(spectral_norms(fold_scalers(self.weights, self.input_std, self.output_std))))
+
+    def certified_lipschitz_columns(self, columns) -> float:
+        """Upper bound on the Lipschitz constant in the inputs ``columns`` alone (the others held
+        fixed), physical units: the folded first layer restricted to those columns."""
+        ws = fold_scalers(self.weights, self.input_std, self.output_std)
+        ws[0] = ws[0][:, list(columns)]
+        return float(np.prod(spectral_norms(ws)))
+
+    def certified_lipschitz(self) -> float:
+        """The certificate in the network's own ``bound_units``."""
+        if self.bound_units == "physical":
+            return self.certified_lipschitz_physical()
+        return self.certified_lipschitz_normalised()
 
     def lipschitz_bound_physical(self) -> float:
-        """The stated bound ``L_N`` converted to physical units as above."""
+        """The stated bound in physical units: itself, or for a normalised bound the (loose)
+        ``L_N * max(output_std) / min(input_std)``, which the folded certificate never exceeds."""
+        if self.bound_units == "physical":
+            return float(self.lipschitz_bound)
         return self.lipschitz_bound * float(np.max(self.output_std)) / float(np.min(self.input_std))
 
-    def scaled_to_bound(self, bound: float) -> LipschitzMLP:
-        """A copy whose certificate is ``<= bound``, with ``lipschitz_bound = bound``.
+    def with_scalers(self, input_mean, input_std, output_mean, output_std) -> LipschitzMLP:
+        """The same function (to rounding) under other z-score statistics: the first and last layers
+        absorb the change. The physical certificate is unchanged; the normalised one is not."""
+        im, isd = np.asarray(input_mean, float), np.asarray(input_std, float)
+        om, osd = np.asarray(output_mean, float), np.asarray(output_std, float)
+        ws, bs = [np.array(w) for w in self.weights], [np.array(b) for b in self.biases]
+        # first layer: W1 (z - μ)/σ + b1 = W1 diag(σ'/σ) (z - μ')/σ' + b1 + W1 (μ' - μ)/σ
+        bs[0] = bs[0] + ws[0] @ ((im - self.input_mean) / self.input_std)
+        ws[0] = ws[0] * (isd / self.input_std)[None, :]
+        # last layer: μ_y + σ_y (W_n x + b_n) = μ'_y + σ'_y (W'_n x + b'_n)
+        ratio = self.output_std / osd
+        ws[-1] = ws[-1] * ratio[:, None]
+        bs[-1] = bs[-1] * ratio + (self.output_mean - om) / osd
+        return LipschitzMLP(tuple(ws), tuple(bs), im, isd, om, osd, self.lipschitz_bound, dict(self.metadata),
+                            self.bound_units)
+
+    def scaled_to_bound(self, bound: float, units: str | None = None) -> LipschitzMLP:
+        """A copy whose certificate in ``units`` (default: its ``bound_units``) is ``<= bound``, stating
+        ``lipschitz_bound = bound`` in those units.
 
         If the certificate ``C`` exceeds ``bound``, each weight is multiplied by
         ``c = (bound / C)^(1/n)`` and bias ``i`` (0-based) by ``c^(i+1)``. Since ReLU is positively
@@ -177,17 +259,23 @@ class LipschitzMLP:
         are copied unchanged.
         """
         bound = float(bound)
-        cert = self.certified_lipschitz_normalised()
+        if units is not None and units != self.bound_units:
+            restated = LipschitzMLP(self.weights, self.biases, self.input_mean, self.input_std, self.output_mean,
+                                    self.output_std, bound, dict(self.metadata), units)
+            return restated.scaled_to_bound(bound)
+        cert = self.certified_lipschitz()
         ws, bs = list(self.weights), list(self.biases)
         if cert > bound:
             n = len(ws)
             c = (bound / cert) ** (1.0 / n)
             ws = [w * c for w in ws]
             bs = [b * c ** (i + 1) for i, b in enumerate(bs)]
-            new_cert = float(np.prod(spectral_norms(ws)))
+            new = LipschitzMLP(tuple(ws), tuple(bs), self.input_mean, self.input_std, self.output_mean,
+                               self.output_std, bound, dict(self.metadata), self.bound_units)
+            new_cert = new.certified_lipschitz()
             if new_cert > bound:  # rounding: shrink the last layer only, by a relative ~1e-15
                 f = bound / new_cert * (1.0 - 1e-12)
                 ws[-1] = ws[-1] * f
                 bs[-1] = bs[-1] * f
         return LipschitzMLP(tuple(ws), tuple(bs), self.input_mean, self.input_std,
-                            self.output_mean, self.output_std, bound, dict(self.metadata))
+                            self.output_mean, self.output_std, bound, dict(self.metadata), self.bound_units)

@@ -1,12 +1,26 @@
 """Offline training of the Lipschitz-bounded MLP (paper Sec. "Constrained DNN Training").
 
 Setup as in the paper: inputs and labels z-scored, seeded 80/20 shuffled split, Adam (1e-3), MSE,
-100 epochs, ReLU MLP 5 -> 20 -> 25 -> 10 -> 1. The constraint ``||h_n||_Lip <= L_N`` (normalised
-units) is enforced Neural-Lander style: after every optimiser step each weight matrix is projected
-``W <- W * min(1, L_N^(1/n_layers) / sigma_max(W))`` with the exact largest singular value, so the
-product of spectral norms, an upper bound on the Lipschitz constant of a ReLU net, is <= L_N at
-every step. The exported numpy network is re-certified in float64 and rescaled by a hair if float32
+100 epochs, ReLU MLP n_in -> 20 -> 25 -> 10 -> 1. The Lipschitz constraint is kept at every step
+by a projection after each optimiser step (Neural-Lander style), in one of two units:
+
+* ``bound_units="normalised"`` (the paper): ``||h_n||_Lip <= L_N`` on the z-scored map; each
+  weight matrix is projected ``W <- W * min(1, L_N^(1/n) / sigma_max(W))``.
+* ``bound_units="physical"``: the bound is on the physical map, (m/s²) per unit z, with the
+  z-scores folded into the first and last layers (:func:`neso.network.fold_scalers`), so the
+  per-input scales count exactly instead of through the loose ``σ_y / min σ_z``. When the product
+  of the folded layers' spectral norms exceeds the bound, every layer is scaled by the same factor
+  so that the product equals it. This is the unit the stability certificate needs, and training
+  to the largest certified bound makes every such network certified by construction.
+
+Either way the exported numpy network is re-certified in float64 and rescaled by a hair if float32
 rounding put it over.
+
+Warm start (Total Disturbance Retraining, ``init``): the base network's layer sizes and weights
+start the fit. ``scalers="init"`` keeps its z-score statistics (the paper; with a normalised bound
+this keeps the physical bound ``L_N·σ_y/min σ_z`` the same); ``scalers="fit"`` fits them on the new
+data and re-expresses the base network exactly under them (:meth:`LipschitzMLP.with_scalers`: the
+same function, the same physical certificate), so new-domain inputs are not many σ out.
 
 torch is imported inside the functions only: importing this module must not pull torch into the
 flight process.
@@ -17,9 +31,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from neso.network import LipschitzMLP
+from neso.network import BOUND_UNITS, LipschitzMLP
 
 STD_FLOOR = 1e-6
+SCALERS = ("fit", "init")
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,49 +56,19 @@ class TrainResult:
     n_val: int = 0
 
 
+@dataclass(frozen=True)
+class _Scalers:
+    in_mean: np.ndarray
+    in_std: np.ndarray
+    out_mean: np.ndarray
+    out_std: np.ndarray
+
+
 def _zscore_stats(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a.mean(axis=0), np.maximum(a.std(axis=0), STD_FLOOR)
 
 
-def _project_(linears, cap: float, torch) -> None:
-    """In-place ``W <- W * min(1, cap / sigma_max(W))`` for every layer (exact sigma_max)."""
-    with torch.no_grad():
-        for lin in linears:
-            sigma = float(torch.linalg.matrix_norm(lin.weight, ord=2))
-            if sigma > cap:
-                lin.weight.mul_(cap / sigma)
-
-
-def train_lipschitz_mlp(
-    z: np.ndarray,
-    y: np.ndarray,
-    *,
-    lipschitz_bound: float,
-    hidden: tuple[int, ...] = (20, 25, 10),
-    epochs: int = 100,
-    lr: float = 1e-3,
-    batch_size: int = 64,
-    val_fraction: float = 0.2,
-    seed: int = 0,
-    init: LipschitzMLP | None = None,
-    metadata: dict[str, str] | None = None,
-) -> TrainResult:
-    """Fit ``h`` with ``||h_n||_Lip <= lipschitz_bound`` (normalised units) by projected Adam.
-
-    ``z`` shape ``(N, n_in)`` physical units; ``y`` shape ``(N,)`` or ``(N, n_out)``. The split is
-    a seeded shuffle; the z-score statistics (std floored at 1e-6) are computed on the training
-    split only, so validation is honest. Deterministic for a given ``seed`` (single torch thread).
-
-    ``init`` (Total Disturbance Retraining): the base network is retrained — its layer sizes,
-    weights *and normalisation statistics* are kept. Keeping the statistics is what makes the
-    warm start meaningful (the weights were learned for those input scales), and it keeps the
-    physical Lipschitz bound ``L_N·σ_y/min σ_z`` the stability certificate uses unchanged.
-    Recomputing them on a flight that holds one altitude would divide the near-constant
-    height by a σ of millimetres and amplify its noise into f_N. The initial weights are
-    projected to the new bound before the first step.
-    """
-    import torch
-
+def _check_inputs(z, y, bound: float, bound_units: str, val_fraction: float, scalers: str):
     z = np.asarray(z, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     if y.ndim == 1:
@@ -92,91 +77,170 @@ def train_lipschitz_mlp(
         raise ValueError(f"need z (N, n_in) and y (N,) or (N, n_out); got {z.shape} and {y.shape}")
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(y))):
         raise ValueError("training data contains NaN or inf")
-    bound = float(lipschitz_bound)
     if not (np.isfinite(bound) and bound > 0):
         raise ValueError(f"lipschitz_bound must be finite and > 0, got {bound}")
+    if bound_units not in BOUND_UNITS:
+        raise ValueError(f"bound_units must be one of {BOUND_UNITS}, got {bound_units!r}")
+    if scalers not in SCALERS:
+        raise ValueError(f"scalers must be one of {SCALERS}, got {scalers!r}")
     if not 0.0 <= val_fraction < 1.0:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
-    n, n_in = z.shape
-    n_out = y.shape[1]
+    return z, y
 
+
+def _split(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(train, validation) indices of a seeded shuffle."""
     perm = np.random.default_rng(seed).permutation(n)
     n_val = int(round(val_fraction * n))
-    n_train = n - n_val
-    if n_train < 1:
+    if n - n_val < 1:
         raise ValueError("no training samples left after the split")
-    tr, va = perm[n_val:], perm[:n_val]
-    if init is not None:
-        in_mean, in_std = np.array(init.input_mean), np.array(init.input_std)
-        out_mean, out_std = np.array(init.output_mean), np.array(init.output_std)
-    else:
-        in_mean, in_std = _zscore_stats(z[tr])
-        out_mean, out_std = _zscore_stats(y[tr])
+    return perm[n_val:], perm[:n_val]
 
-    if init is not None:
-        sizes = init.layer_sizes
-        if sizes[0] != n_in or sizes[-1] != n_out:
-            raise ValueError(f"init network is {sizes[0]} -> {sizes[-1]}, data is {n_in} -> {n_out}")
-    else:
-        sizes = (n_in, *hidden, n_out)
-    n_layers = len(sizes) - 1
-    cap = bound ** (1.0 / n_layers)
 
+def _start(z_train: np.ndarray, y_train: np.ndarray, init: LipschitzMLP | None, scalers: str,
+           hidden: tuple[int, ...]) -> tuple[_Scalers, tuple[int, ...], LipschitzMLP | None]:
+    """The z-score statistics, the layer sizes and the warm-start network expressed under those statistics."""
+    n_in, n_out = z_train.shape[1], y_train.shape[1]
+    if init is None:
+        return _Scalers(*_zscore_stats(z_train), *_zscore_stats(y_train)), (n_in, *hidden, n_out), None
+    sizes = init.layer_sizes
+    if sizes[0] != n_in or sizes[-1] != n_out:
+        raise ValueError(f"init network is {sizes[0]} -> {sizes[-1]}, data is {n_in} -> {n_out}")
+    if scalers == "init":
+        return _Scalers(np.array(init.input_mean), np.array(init.input_std), np.array(init.output_mean),
+                        np.array(init.output_std)), sizes, init
+    stats = _Scalers(*_zscore_stats(z_train), *_zscore_stats(y_train))
+    return stats, sizes, init.with_scalers(stats.in_mean, stats.in_std, stats.out_mean, stats.out_std)
+
+
+class _Projection:
+    """Keeps the torch layers inside the Lipschitz bound after every step (module docstring)."""
+
+    def __init__(self, linears, bound: float, bound_units: str, stats: _Scalers, torch) -> None:
+        self.linears, self.bound, self.torch = linears, bound, torch
+        self.physical = bound_units == "physical"
+        self.cap = bound ** (1.0 / len(linears))
+        self.col_scale = torch.from_numpy((1.0 / stats.in_std).astype(np.float32))
+        self.row_scale = torch.from_numpy(stats.out_std.astype(np.float32))
+
+    def __call__(self) -> None:
+        torch = self.torch
+        with torch.no_grad():
+            if not self.physical:
+                for lin in self.linears:
+                    sigma = float(torch.linalg.matrix_norm(lin.weight, ord=2))
+                    if sigma > self.cap:
+                        lin.weight.mul_(self.cap / sigma)
+                return
+            product = 1.0
+            last = len(self.linears) - 1
+            for i, lin in enumerate(self.linears):
+                w = lin.weight
+                if i == 0:
+                    w = w * self.col_scale[None, :]
+                if i == last:
+                    w = self.row_scale[:, None] * w
+                product *= float(torch.linalg.matrix_norm(w, ord=2))
+            if product > self.bound:
+                factor = (self.bound / product) ** (1.0 / len(self.linears))
+                for lin in self.linears:
+                    lin.weight.mul_(factor)
+
+
+def _fit(linears, project: _Projection, zt, yt, *, epochs: int, lr: float, batch_size: int, seed: int, torch) -> list[float]:
+    layers: list = []
+    for i, lin in enumerate(linears):
+        layers.append(lin)
+        if i < len(linears) - 1:
+            layers.append(torch.nn.ReLU())
+    model = torch.nn.Sequential(*layers)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    gen = torch.Generator().manual_seed(seed)
+    n_train = zt.shape[0]
+    history: list[float] = []
+    for _ in range(epochs):
+        order = torch.randperm(n_train, generator=gen)
+        total = 0.0
+        for start in range(0, n_train, batch_size):
+            idx = order[start:start + batch_size]
+            loss = torch.mean((model(zt[idx]) - yt[idx]) ** 2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            project()
+            total += loss.item() * len(idx)
+        history.append(total / n_train)
+    return history
+
+
+def train_lipschitz_mlp(
+    z: np.ndarray,
+    y: np.ndarray,
+    *,
+    lipschitz_bound: float,
+    bound_units: str = "normalised",
+    hidden: tuple[int, ...] = (20, 25, 10),
+    epochs: int = 100,
+    lr: float = 1e-3,
+    batch_size: int = 64,
+    val_fraction: float = 0.2,
+    seed: int = 0,
+    init: LipschitzMLP | None = None,
+    scalers: str = "init",
+    metadata: dict[str, str] | None = None,
+) -> TrainResult:
+    """Fit ``h`` with its Lipschitz constant ``<= lipschitz_bound`` in ``bound_units`` by projected Adam.
+
+    ``z`` shape ``(N, n_in)`` physical units; ``y`` shape ``(N,)`` or ``(N, n_out)``. The split is
+    a seeded shuffle; the z-score statistics (std floored at 1e-6) are computed on the training
+    split only, so validation is honest. ``init`` and ``scalers``: the warm start (module
+    docstring; ``scalers`` only matters with ``init``). Deterministic for a given ``seed`` (single
+    torch thread).
+    """
+    import torch
+
+    bound = float(lipschitz_bound)
+    z, y = _check_inputs(z, y, bound, bound_units, val_fraction, scalers)
+    tr, va = _split(z.shape[0], val_fraction, seed)
+    stats, sizes, start = _start(z[tr], y[tr], init, scalers, hidden)
     prev_threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         torch.manual_seed(seed)
-        linears = [torch.nn.Linear(sizes[i], sizes[i + 1]) for i in range(n_layers)]
-        if init is not None:
+        linears = [torch.nn.Linear(sizes[i], sizes[i + 1]) for i in range(len(sizes) - 1)]
+        if start is not None:
             with torch.no_grad():
-                for lin, w, b in zip(linears, init.weights, init.biases):
+                for lin, w, b in zip(linears, start.weights, start.biases):
                     lin.weight.copy_(torch.from_numpy(np.array(w)))
                     lin.bias.copy_(torch.from_numpy(np.array(b)))
-        _project_(linears, cap, torch)
-        layers: list = []
-        for i, lin in enumerate(linears):
-            layers.append(lin)
-            if i < n_layers - 1:
-                layers.append(torch.nn.ReLU())
-        model = torch.nn.Sequential(*layers)
-
-        zt = torch.from_numpy(((z[tr] - in_mean) / in_std).astype(np.float32))
-        yt = torch.from_numpy(((y[tr] - out_mean) / out_std).astype(np.float32))
-        opt = torch.optim.Adam(model.parameters(), lr=lr)
-        gen = torch.Generator().manual_seed(seed)
-        history: list[float] = []
-        for _ in range(epochs):
-            order = torch.randperm(n_train, generator=gen)
-            total = 0.0
-            for start in range(0, n_train, batch_size):
-                idx = order[start:start + batch_size]
-                pred = model(zt[idx])
-                loss = torch.mean((pred - yt[idx]) ** 2)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                _project_(linears, cap, torch)
-                total += loss.item() * len(idx)
-            history.append(total / n_train)
+        project = _Projection(linears, bound, bound_units, stats, torch)
+        project()
+        zt = torch.from_numpy(((z[tr] - stats.in_mean) / stats.in_std).astype(np.float32))
+        yt = torch.from_numpy(((y[tr] - stats.out_mean) / stats.out_std).astype(np.float32))
+        history = _fit(linears, project, zt, yt, epochs=epochs, lr=lr, batch_size=batch_size, seed=seed, torch=torch)
         weights = tuple(lin.weight.detach().double().numpy().copy() for lin in linears)
         biases = tuple(lin.bias.detach().double().numpy().copy() for lin in linears)
     finally:
         torch.set_num_threads(prev_threads)
 
-    net = LipschitzMLP(weights, biases, in_mean, in_std, out_mean, out_std, bound)
+    net = LipschitzMLP(weights, biases, stats.in_mean, stats.in_std, stats.out_mean, stats.out_std, bound,
+                       bound_units=bound_units)
     net = net.scaled_to_bound(bound)  # no-op unless float32 rounding left it a hair over
+    return _result(net, z, y, tr, va, history, init, epochs, lr, batch_size, seed, scalers, metadata)
 
+
+def _result(net, z, y, tr, va, history, init, epochs, lr, batch_size, seed, scalers, metadata) -> TrainResult:
     def losses(idx: np.ndarray) -> tuple[float, float]:
         if idx.size == 0:
             return float("nan"), float("nan")
         err = net.predict(z[idx]) - y[idx]
-        return float(np.mean((err / out_std) ** 2)), float(np.mean(err ** 2))
+        return float(np.mean((err / net.output_std) ** 2)), float(np.mean(err ** 2))
 
     train_loss, _ = losses(tr)
     val_loss, val_loss_phys = losses(va)
     meta = {
-        "n_train": str(n_train),
-        "n_val": str(n_val),
+        "n_train": str(len(tr)),
+        "n_val": str(len(va)),
         "epochs": str(epochs),
         "lr": repr(float(lr)),
         "batch_size": str(batch_size),
@@ -186,10 +250,12 @@ def train_lipschitz_mlp(
         "val_loss_physical": repr(val_loss_phys),
         "warm_start": init.metadata.get("id", "yes") if init is not None else "no",
     }
+    if init is not None:
+        meta["scalers"] = scalers
     meta.update({str(k): str(v) for k, v in (metadata or {}).items()})
-    net = LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std,
-                       net.output_mean, net.output_std, bound, meta)
-    return TrainResult(net, train_loss, val_loss, val_loss_phys, history, n_train, n_val)
+    net = LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std, net.output_mean, net.output_std,
+                       net.lipschitz_bound, meta, net.bound_units)
+    return TrainResult(net, train_loss, val_loss, val_loss_phys, history, len(tr), len(va))
 
 
 def to_torch(net: LipschitzMLP, dtype=None):

@@ -14,7 +14,10 @@ import pytest
 from neso.netfile import (NetworkFileError, load_network, network_from_bytes,
                           network_to_bytes, save_network)
 from neso.network import LipschitzMLP
+from neso.features import FEATURE_SETS, feature_set
+from neso.network import fold_scalers
 from neso.training import to_torch, train_lipschitz_mlp
+from tests.unit.helpers import random_network
 
 # Paper-like inputs: 5 features with different scales and offsets (m, m/s, N, rad, rad).
 _SCALES = np.array([0.4, 0.8, 3.0, 0.1, 0.1])
@@ -74,8 +77,11 @@ def test_trained_network_certified_within_bound(trained, target, bound):
     assert all(np.linalg.norm(w, ord=2) <= cap * (1 + 1e-6) for w in net.weights)
     # a binding bound: the optimiser pushes against it, so the certificate is close to it
     assert net.certified_lipschitz_normalised() > 0.5 * bound
+    # the physical certificate folds the z-scores into the end layers: never above the loose L_N·σ_y/min σ_z
     phys = net.certified_lipschitz_physical()
-    assert phys == pytest.approx(net.certified_lipschitz_normalised() * net.output_std.max() / net.input_std.min())
+    folded = fold_scalers(net.weights, net.input_std, net.output_std)
+    assert phys == pytest.approx(np.prod([np.linalg.norm(w, 2) for w in folded]), rel=1e-12)
+    assert phys <= net.certified_lipschitz_normalised() * net.output_std.max() / net.input_std.min() * (1 + 1e-12)
     assert res.n_train == 960 and res.n_val == 240
     assert len(res.history) == 30 and np.isfinite(res.val_loss)
     assert net.layer_sizes == (5, 20, 25, 10, 1)
@@ -137,8 +143,9 @@ def test_save_load_round_trip(tmp_path, net):
 
     header = _split(path.read_bytes())[0]
     meta = header["__metadata__"]
-    assert meta["format"] == "neso-lipschitz-mlp" and meta["format_version"] == "1"
-    assert float(meta["certified_lipschitz_normalised"]) <= float(meta["lipschitz_bound_normalised"])
+    assert meta["format"] == "neso-lipschitz-mlp" and meta["format_version"] == "2"
+    assert meta["lipschitz_bound_units"] == "normalised"
+    assert float(meta["certified_lipschitz_normalised"]) <= float(meta["lipschitz_bound"])
     assert float(meta["lipschitz_bound_physical"]) == pytest.approx(net.lipschitz_bound_physical())
     assert float(meta["certified_lipschitz_physical"]) == pytest.approx(net.certified_lipschitz_physical())
     assert meta["n_layers"] == "4"
@@ -270,7 +277,8 @@ def test_refuses_pickle(net):
 def test_refuses_wrong_format_and_version(net):
     t, m = _tensors_meta(net)
     _refuses(_build(t, {**m, "format": "other"}), "format")
-    _refuses(_build(t, {**m, "format_version": "2"}), "format_version")
+    _refuses(_build(t, {**m, "format_version": "3"}), "format_version")
+    _refuses(_build(t, {**m, "lipschitz_bound_units": "furlongs"}), "lipschitz_bound_units")
 
 
 def test_refuses_missing_tensor_and_bad_dtype(net):
@@ -347,3 +355,78 @@ def test_imports_do_not_pull_torch():
             "sys.exit(1 if 'torch' in sys.modules else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr or "torch was imported"
+
+
+# ---- physical bounds, feature sets ---------------------------------------------------------
+@pytest.fixture(scope="module")
+def physical():
+    """A network trained to a physical bound on inputs of very different scales (0.1 rad vs 3 N)."""
+    z = _inputs(1200, seed=7)
+    return train_lipschitz_mlp(z, _steep(z), lipschitz_bound=0.8, bound_units="physical", epochs=30, seed=0,
+                               metadata={"id": "phys", "feature_set": "paper@1"}).network
+
+
+def test_a_physical_bound_is_met_exactly_by_the_folded_weights(physical):
+    assert physical.bound_units == "physical" and physical.lipschitz_bound == 0.8
+    assert physical.certified_lipschitz_physical() <= 0.8 * (1 + 1e-12)
+    assert physical.certified_lipschitz_physical() > 0.4, "a binding bound: the optimiser pushes against it"
+    assert physical.lipschitz_bound_physical() == 0.8
+
+
+@pytest.mark.parametrize("which", ["physical", "normalised"])
+def test_the_physical_bound_from_the_weights_is_never_exceeded_by_a_finite_difference_slope(physical, net, which):
+    """Random pairs of physical inputs, near and far: |h(a) − h(b)| / ‖a − b‖ ≤ the certificate."""
+    model = physical if which == "physical" else net
+    bound = model.certified_lipschitz_physical()
+    rng = np.random.default_rng(11)
+    a = _inputs(20000, seed=12)
+    steps = rng.normal(size=a.shape) * _SCALES * rng.choice([1e-3, 1e-1, 1.0, 10.0], size=(len(a), 1))
+    b = a + steps
+    slopes = np.abs(model.predict(a) - model.predict(b))[:, 0] / np.linalg.norm(a - b, axis=1)
+    assert np.max(slopes) <= bound * (1 + 1e-9)
+    assert np.max(slopes) > 0.05 * bound, "the pairs probe the steep directions too"
+
+
+def test_re_expressing_a_network_under_other_z_scores_keeps_the_function_and_the_physical_bound(physical):
+    z = _inputs(500, seed=9)
+    other = physical.with_scalers(z.mean(axis=0) + 1.0, z.std(axis=0) * 3.0, np.array([0.7]), np.array([4.0]))
+    np.testing.assert_allclose(other.predict(z), physical.predict(z), rtol=1e-11, atol=1e-11)
+    assert other.certified_lipschitz_physical() == pytest.approx(physical.certified_lipschitz_physical(), rel=1e-12)
+    assert other.certified_lipschitz_normalised() != pytest.approx(physical.certified_lipschitz_normalised(), rel=1e-3)
+
+
+def test_a_warm_start_under_refitted_scalers_starts_from_the_same_function():
+    z = _inputs(600, seed=2)
+    base = train_lipschitz_mlp(z, _gentle(z), lipschitz_bound=2.0, bound_units="physical", epochs=10, seed=0,
+                               metadata={"feature_set": "paper@1"}).network
+    shifted = z * 1.5 + 0.3
+    start = train_lipschitz_mlp(shifted, _gentle(z), lipschitz_bound=2.0, bound_units="physical", epochs=0, seed=0,
+                                init=base, scalers="fit").network
+    np.testing.assert_allclose(start.predict(z), base.predict(z), rtol=1e-6, atol=1e-6)  # float32 round trip
+    assert not np.allclose(start.input_mean, base.input_mean)
+
+
+def test_every_feature_set_round_trips_through_the_network_file(tmp_path):
+    for key, fs in FEATURE_SETS.items():
+        net = random_network(3, sizes=(fs.size, 8, 1), bound=1.0)
+        net = LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std, net.output_mean, net.output_std,
+                           1.0, {"id": key, "feature_set": key, "thrust_lag_s": "0.04", "thrust_delay_s": "0.01"})
+        path = tmp_path / f"{fs.name}.safetensors"
+        save_network(path, net)
+        back = load_network(path)
+        assert back.feature_set is feature_set(key) and back.n_inputs == fs.size
+        assert back.thrust_lag.time_constant_s == 0.04 and back.thrust_lag.delay_s == 0.01
+
+
+def test_a_file_with_an_unknown_or_mis_sized_feature_set_is_refused_with_the_reason(net):
+    t, m = _tensors_meta(net)
+    _refuses(_build(t, {**m, "feature_set": "lidar@7"}), "unknown feature set 'lidar@7'")
+    _refuses(_build(t, {**m, "feature_set": "state@1"}), "feature set state@1 has 4 inputs, the network takes 5")
+    _refuses(_build(t, {**m, "feature_set": "paper@2"}), "unknown feature set")
+    assert network_from_bytes(_build(t, {**m, "feature_set": "paper@1"})).feature_set.key == "paper@1"
+
+
+def test_a_file_without_a_feature_set_was_trained_on_the_papers_inputs(net):
+    t, m = _tensors_meta(net)
+    m = {k: v for k, v in m.items() if k != "feature_set"}
+    assert network_from_bytes(_build(t, m)).feature_set.key == "paper@1"

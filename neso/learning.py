@@ -1,0 +1,215 @@
+"""What a network learns from a flight: the training pairs (features, label) and the recipes.
+
+Pure and offline (training works on a buffer, so labels may be non-causal). One flight is a
+:class:`FlightSeries` — the samples the estimator saw — whether it comes from the simulator
+(:mod:`sim.experiments`) or from a recording (:mod:`recordings.dataset`); the same functions
+make the pairs for both.
+
+Labels (z axis, m/s²):
+
+=============  ===================================================================================
+``eso``        the ESO teacher, x̂₃ = f̂ of a flight under the ``eso`` pathway (paper Sec. III-A)
+``tdr``        total disturbance, f_N + Δf̂ = f̂ of a flight under ``neural_eso`` (paper Sec. V-E)
+``applied``    lag-consistent: a_z + g − T_applied·(R e₃)_z / m from the measured position's second
+               derivative after a zero-phase low-pass (no lag) and the *applied* thrust (the commands through the identified lag and
+               delay, :func:`identify_thrust_lag`). Both ESO labels see the command's thrust through
+               the observer's model, so wherever the vehicle's thrust lags the command they carry
+               −(T_cmd − T_applied)/m, an echo of the controller's own output, and the observer's
+               own lag on top; this one carries neither.
+=============  ===================================================================================
+
+A :class:`Recipe` names everything that decides what a network is: its inputs (feature set), the
+labels of the base network and of TDR, the bound and its units, and how TDR normalises.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from neso.features import (DEFAULT_FEATURE_SET, PAPER_FEATURE_SET, FeatureSet, FeatureSignals, ThrustLag,
+                           applied_thrust_series)
+from neso.types import VehicleModel
+
+LABELS = ("eso", "tdr", "applied")
+#: The pathway a flight must have flown for a label taken from its estimates.
+LABEL_PATHWAYS = {"eso": ("eso",), "tdr": ("neural_eso",), "applied": None}
+#: The zero-phase low-pass under the measured acceleration, Hz. Chosen on simulated flights against the
+#: truth (README "Labels"): 3 Hz on the position beat 2 and 5 Hz and every cutoff on the velocity.
+SMOOTHING_CUTOFF_HZ = 3.0
+IDENTIFICATION_CUTOFF_HZ = 5.0  # identify_thrust_lag needs the band where the lag shows
+
+
+@dataclass(frozen=True)
+class FlightSeries:
+    """One flight's samples as the estimator saw them (N samples at a fixed period).
+
+    ``t_s`` (N,) s; ``pos_enu_m``, ``vel_enu_mps`` (N, 3) measured; ``roll_rad``, ``pitch_rad`` (N,)
+    measured; ``thrust_prev_n`` (N,): the thrust commanded at the sample before (the control that
+    acted over the period ending at this sample, N); ``f_hat_mps2`` (N, 3): the estimator's f̂
+    (NaN where there was none); ``pathway`` (N,) of str or None.
+    """
+
+    t_s: np.ndarray
+    pos_enu_m: np.ndarray
+    vel_enu_mps: np.ndarray
+    roll_rad: np.ndarray
+    pitch_rad: np.ndarray
+    thrust_prev_n: np.ndarray
+    f_hat_mps2: np.ndarray
+    pathway: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def dt_s(self) -> float:
+        d = np.diff(self.t_s)
+        d = d[d > 0]
+        return float(np.median(d)) if d.size else 0.02
+
+    @property
+    def tilt_cos(self) -> np.ndarray:
+        """(R e₃)_z = cos φ cos θ (N,)."""
+        return np.cos(self.roll_rad) * np.cos(self.pitch_rad)
+
+    def signals(self, lag: ThrustLag) -> FeatureSignals:
+        applied = applied_thrust_series(self.thrust_prev_n, lag, self.dt_s)
+        return FeatureSignals(self.pos_enu_m, self.vel_enu_mps, self.roll_rad, self.pitch_rad,
+                              self.thrust_prev_n, applied)
+
+
+def features(series: FlightSeries, fset: FeatureSet, lag: ThrustLag = ThrustLag()) -> np.ndarray:
+    """z (N, fset.size) for every sample: the inputs the estimator builds in flight."""
+    return fset.build(series.signals(lag))
+
+
+def zero_phase(x: np.ndarray, dt_s: float, cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
+    """``x`` (N,) through a 2nd-order Butterworth low-pass run forwards and backwards: no lag."""
+    from scipy.signal import butter, filtfilt  # offline only
+
+    x = np.asarray(x, dtype=float)
+    if len(x) <= 9:
+        return x.copy()
+    b, a = butter(2, min(cutoff_hz / (0.5 / dt_s), 0.99))
+    return filtfilt(b, a, x)
+
+
+def smoothed_acceleration(pos_m: np.ndarray, dt_s: float, cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
+    """Acceleration (N,) at every sample from measured position (N,): :func:`zero_phase`, then twice
+    central differences (one-sided at the ends). From the position rather than a source's velocity,
+    which carries the source's own filter lag."""
+    return np.gradient(np.gradient(zero_phase(pos_m, dt_s, cutoff_hz), dt_s), dt_s)
+
+
+def applied_label(series: FlightSeries, lag: ThrustLag, vehicle: VehicleModel = VehicleModel(),
+                  cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
+    """The lag-consistent label (module docstring), z axis, m/s² (N,): the whole residual through the same
+    zero-phase low-pass (acceleration and thrust alike, so neither leads the other)."""
+    dt = series.dt_s
+    acc = smoothed_acceleration(series.pos_enu_m[:, 2], dt, cutoff_hz)
+    lift = zero_phase(applied_thrust_series(series.thrust_prev_n, lag, dt) * series.tilt_cos, dt, cutoff_hz)
+    return acc + vehicle.gravity_mps2 - lift / vehicle.mass_kg
+
+
+def labels(series: FlightSeries, kind: str, lag: ThrustLag = ThrustLag(),
+           vehicle: VehicleModel = VehicleModel()) -> np.ndarray:
+    """The label ``kind`` (one of :data:`LABELS`) for every sample, z axis, m/s² (N,)."""
+    if kind in ("eso", "tdr"):
+        return np.asarray(series.f_hat_mps2, dtype=float)[:, 2].copy()
+    if kind == "applied":
+        return applied_label(series, lag, vehicle)
+    raise ValueError(f"label must be one of {LABELS}, got {kind!r}")
+
+
+def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, vehicle: VehicleModel = VehicleModel(), *,
+                        time_constants_s: np.ndarray | None = None,
+                        delays_s: np.ndarray | None = None) -> tuple[ThrustLag, float]:
+    """The first-order lag and delay from thrust command to measured acceleration, by grid search.
+
+    For each candidate the residual ``a − T_applied·(R e₃)_z/m`` is made; what a wrong lag leaves in
+    it is the difference between the true and the modelled applied thrust, a high-pass image of the
+    command that adds variance. The candidate with the least residual variance (flights' means
+    removed) is returned with that variance ((m/s²)²). Defaults: τ 0–150 ms and d 0–60 ms in 2.5 ms
+    steps. The lag shows above its corner (3.5 Hz for 45 ms), where the position's second difference
+    is noise: the acceleration here comes from the source's velocity through a 5 Hz zero-phase
+    low-pass (thrust likewise); below ~3 Hz the fit drifts to the longest lag on the grid, which
+    mimics the smoothing and the closed loop's own thrust–disturbance correlation (measured).
+    """
+    flights = [series] if isinstance(series, FlightSeries) else list(series)
+    taus = np.arange(0.0, 0.1501, 0.0025) if time_constants_s is None else np.asarray(time_constants_s)
+    delays = np.arange(0.0, 0.0601, 0.0025) if delays_s is None else np.asarray(delays_s)
+    accs = [np.gradient(zero_phase(s.vel_enu_mps[:, 2], s.dt_s, IDENTIFICATION_CUTOFF_HZ), s.dt_s) for s in flights]
+    best = (ThrustLag(), np.inf)
+    for tau in taus:
+        for delay in delays:
+            lag = ThrustLag(float(tau), float(delay))
+            var = 0.0
+            for s, acc in zip(flights, accs):
+                lift = zero_phase(applied_thrust_series(s.thrust_prev_n, lag, s.dt_s) * s.tilt_cos, s.dt_s,
+                                  IDENTIFICATION_CUTOFF_HZ)
+                y = acc - lift / vehicle.mass_kg
+                var += float(np.sum((y - y.mean()) ** 2))
+            var /= sum(len(s) for s in flights)
+            if var < best[1]:
+                best = (lag, var)
+    return best
+
+
+# -- recipes --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Recipe:
+    """How networks are made.
+
+    ``feature_set``: the inputs. ``base_label``/``tdr_label``: :data:`LABELS` for the base network
+    (ESO-teacher flights) and for Total Disturbance Retraining. ``bound_units``: ``normalised``
+    (the paper's L_N on the z-scored map) or ``physical`` ((m/s²) per unit z, what the
+    certificate needs). ``lipschitz_bound``: the bound in those units; ``None`` means the largest
+    the stability certificate allows for the gains flown (physical units only).
+    ``tdr_scalers``: ``init`` keeps the base network's z-scores, ``fit`` refits them on the new
+    data (:func:`neso.training.train_lipschitz_mlp`).
+    """
+
+    name: str
+    feature_set: str
+    base_label: str
+    tdr_label: str
+    bound_units: str
+    lipschitz_bound: float | None
+    tdr_scalers: str
+    certified_fraction: float = 0.9
+    description: str = field(default="", compare=False)
+
+    def __post_init__(self) -> None:
+        if self.base_label not in LABELS or self.tdr_label not in LABELS:
+            raise ValueError(f"labels must be in {LABELS}")
+        if self.lipschitz_bound is None and self.bound_units != "physical":
+            raise ValueError("a certified bound (lipschitz_bound None) is in physical units")
+
+
+RECIPES: dict[str, Recipe] = {r.name: r for r in (
+    Recipe("paper", PAPER_FEATURE_SET, "eso", "tdr", "normalised", 1.0, "init", description=
+           "the paper as published: [p_z, v_z, T_k-1, roll, pitch], ESO and f_N + Δf̂ labels, L_N = 1 normalised, "
+           "TDR keeps the base network's z-scores"),
+    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit", description=
+           "inputs free of the controller's output, lag-consistent TDR labels, trained to the largest bound the "
+           "certificate allows for the gains flown, TDR z-scores refitted"),
+)}
+DEFAULT_RECIPE = "certified"
+
+
+def recipe_of(metadata: dict) -> Recipe:
+    """The recipe a network was made with (its metadata ``recipe``; older files: by their inputs)."""
+    name = metadata.get("recipe")
+    if name in RECIPES:
+        return RECIPES[name]
+    return RECIPES["paper"] if metadata.get("feature_set", PAPER_FEATURE_SET) == PAPER_FEATURE_SET else RECIPES[DEFAULT_RECIPE]
+
+
+def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float) -> float:
+    """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown."""
+    if recipe.lipschitz_bound is not None:
+        return recipe.lipschitz_bound
+    from neso.certificate import largest_certified_lipschitz
+
+    return recipe.certified_fraction * largest_certified_lipschitz(kp, kd, omega_o)
