@@ -135,6 +135,21 @@ class Node:
 
         self._declared.append(self.session.declare_subscriber(self.keys.topic(topic), on_sample))
 
+    def subscribe_params(self, service: str, handler: Callable[[dict], None]) -> None:
+        """Call ``handler(values)`` under the node lock whenever ``service``'s parameters take effect
+        (its :class:`ParamStateMsg` broadcast); invalid broadcasts are counted."""
+
+        def on_sample(sample) -> None:
+            try:
+                msg = ParamStateMsg.from_bytes(sample.payload.to_bytes())
+            except SchemaError as exc:
+                self.stats.reject("params", str(exc))
+                return
+            with self.lock:
+                self._guarded("params handler", handler, dict(msg.values))
+
+        self._declared.append(self.session.declare_subscriber(self.keys.params(service), on_sample))
+
     def _guarded(self, what: str, fn: Callable, *args) -> Any:
         try:
             return fn(*args)
@@ -164,8 +179,11 @@ class Node:
         elif request.op == "get":
             reply = ParamReply(ok=True, service=self.service, values=self.params.values())
         else:
+            self.params.prepare(request.values)  # slow work (a certificate) outside the lock
             with self.lock:  # a check may read the step object's state
                 ok, error, values = self.params.request(request.values)
+            for note in self.params.take_overrides():
+                self.event("warning", note)
             reply = ParamReply(ok=ok, service=self.service, values=values, error=error)
             self.log(f"param set {request.values}: " + ("accepted" if ok else f"refused: {error}"))
         query.reply(query.key_expr, reply.to_bytes())

@@ -6,6 +6,12 @@ Lipschitz bound above the one the network was trained to"). :meth:`ParamSet.requ
 validates a set request and either refuses it with the reason (nothing changes) or stores
 it as pending; the service takes the pending values with :meth:`ParamSet.take_pending` at
 its next tick boundary, so a change never lands in the middle of a step.
+
+A check may refuse in a way the operator can override (:class:`Refusal` with ``overridable``:
+the stability certificate): a request carrying ``override: true`` is then accepted, and the
+refusal it overrode is kept for the service to report (:meth:`ParamSet.take_overrides`), so the
+flight's record says who flew outside the certificate and by how much. A ``prepare`` hook runs
+before the check, outside any lock of the service, for slow work the check then finds cached.
 """
 from __future__ import annotations
 
@@ -13,6 +19,20 @@ import math
 import threading
 from dataclasses import dataclass
 from typing import Any, Callable
+
+
+OVERRIDE = "override"  # the request key that overrides an overridable refusal
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a check refuses; ``overridable``: ``override: true`` in the request accepts it anyway."""
+
+    reason: str
+    overridable: bool = False
+
+
+Check = Callable[[dict[str, Any]], "str | Refusal | None"]
 
 
 @dataclass(frozen=True)
@@ -55,9 +75,11 @@ class ParamSet:
     """Current values, pending changes and validation for one service's parameters."""
 
     def __init__(self, specs: tuple[Param, ...], initial: dict[str, Any] | None = None,
-                 check: Callable[[dict[str, Any]], str | None] | None = None) -> None:
+                 check: Check | None = None, prepare: Callable[[dict[str, Any]], None] | None = None) -> None:
         self.specs = {p.name: p for p in specs}
         self._check = check
+        self._prepare = prepare
+        self._overrides: list[str] = []
         self._lock = threading.Lock()
         values = {p.name: p.default for p in specs}
         for name, value in (initial or {}).items():
@@ -80,21 +102,49 @@ class ParamSet:
         with self._lock:
             return dict(self._values)
 
+    def prepare(self, changes: dict[str, Any]) -> None:
+        """Run the ``prepare`` hook on the values ``changes`` would give (nothing if they are invalid)."""
+        if self._prepare is None or not isinstance(changes, dict):
+            return
+        try:
+            coerced = {n: self._spec(n).coerce(v) for n, v in changes.items() if n != OVERRIDE}
+        except ValueError:
+            return
+        self._prepare({**self.values(), **coerced})
+
     def request(self, changes: dict[str, Any]) -> tuple[bool, str, dict[str, Any]]:
-        """Validate ``changes``; (accepted, reason if refused, values that will be in effect)."""
+        """Validate ``changes``; (accepted, reason if refused, values that will be in effect).
+        ``changes`` may carry ``override: true`` (module docstring)."""
         if not isinstance(changes, dict) or not changes:
             return False, "a set request needs at least one name: value", self.values()
+        changes = dict(changes)
+        override = changes.pop(OVERRIDE, False)
+        if not isinstance(override, bool):
+            return False, f"{OVERRIDE} must be true or false, got {override!r}", self.values()
+        if not changes:
+            return False, "a set request needs at least one name: value besides override", self.values()
         try:
             coerced = {name: self._spec(name).coerce(value) for name, value in changes.items()}
         except ValueError as exc:
             return False, str(exc), self.values()
         with self._lock:
             proposed = {**self._values, **self._pending, **coerced}
-            reason = self._check(proposed) if self._check is not None else None
-            if reason:
-                return False, reason, {**self._values, **self._pending}
+            verdict = self._check(proposed) if self._check is not None else None
+            if isinstance(verdict, str):
+                verdict = Refusal(verdict) if verdict else None
+            if verdict is not None:
+                if not (override and verdict.overridable):
+                    hint = " (send override=true to apply it anyway)" if verdict.overridable else ""
+                    return False, verdict.reason + hint, {**self._values, **self._pending}
+                self._overrides.append(f"{coerced} applied by override: {verdict.reason}")
             self._pending.update(coerced)
             return True, "", proposed
+
+    def take_overrides(self) -> list[str]:
+        """The refusals overridden since the last call (to report as events)."""
+        with self._lock:
+            out, self._overrides = self._overrides, []
+            return out
 
     def take_pending(self) -> dict[str, Any]:
         """The changes accepted since the last call (empty if none), now in effect."""

@@ -86,6 +86,18 @@ def _integer(lo: int = 0, hi: int = 2**63 - 1) -> Callable[[Any], int]:
     return check
 
 
+MAX_FEATURES = 16  # the longest network input a message carries
+
+
+def _vector_upto(n_max: int, limit: float) -> Callable[[Any], tuple[float, ...]]:
+    """A vector of 0 to ``n_max`` finite numbers within ±``limit``."""
+    def check(x: Any) -> tuple[float, ...]:
+        if not isinstance(x, (list, tuple)) or len(x) > n_max:
+            raise SchemaError(f"expected at most {n_max} numbers")
+        return _vector(len(x), limit)(x)
+    return check
+
+
 def _vector(n: int, limit: float) -> Callable[[Any], tuple[float, ...]]:
     element = _number(-limit, limit)
 
@@ -254,7 +266,8 @@ class TruthMsg(Message):
 
 @dataclass(frozen=True, slots=True)
 class EstimateMsg(Message):
-    """f̂ = f_N + Δf̂ (m/s², ENU) for state ``seq``; ``z`` the network input (5,).
+    """f̂ = f_N + Δf̂ (m/s², ENU) for state ``seq``; ``z`` the network input (its feature set's size;
+    empty without a network).
     ``warm_ticks``: samples since the estimator (re)started (its observer converges over the
     first ones)."""
 
@@ -265,7 +278,7 @@ class EstimateMsg(Message):
     f_hat_mps2: tuple = f(_ACC)
     f_n_mps2: tuple = f(_ACC)
     delta_f_hat_mps2: tuple = f(_ACC)
-    z: tuple = f(_vector(5, 1e6))
+    z: tuple = f(_vector_upto(MAX_FEATURES, 1e6))
     pathway: str = f(_text(PATHWAYS))
     network_id: str = f(_text())
     warm_ticks: int = f(_SEQ)
@@ -434,10 +447,13 @@ class RecordingMsg(Message):
 class NetworkMsg(Message):
     """The estimator's networks, 1 Hz and on every change. ``active``/``candidate``/``previous``:
     maps with at least ``id``; ``active`` also ``source`` (where it came from: file, registry,
-    scaled), ``lipschitz_norm`` and ``lipschitz_phys`` (certified bound, normalised and
+    scaled), ``feature_set``, ``lipschitz_norm`` and ``lipschitz_phys`` (certified, normalised and
     (m/s²)/unit z); ``candidate`` is empty when there is none and else carries ``state``
-    (``shadow``) and the gate's findings. ``shadow_error_rms_mps2``: the candidate's RMS error
-    against f̂ over the shadow window (−1: no candidate)."""
+    (``shadow``), the gate's findings, its ``certificate`` and the trainer's ``predicted`` closed-loop
+    RMSE. ``shadow_error_rms_mps2``: the candidate's RMS error against f̂ over the shadow window
+    (−1: no candidate). ``certificate``: the estimator's verdict for what flies
+    (:meth:`neso.certificate.FlightCertificate.to_dict` plus ``pathway``); ``canary``: ``armed``,
+    ``last`` (its last verdict), ``window_samples``, ``margin``."""
 
     TYPE: ClassVar[str] = "network"
     stamp_s: float = f(_STAMP)
@@ -446,6 +462,8 @@ class NetworkMsg(Message):
     candidate: dict = f(_mapping)
     previous: dict = f(_mapping)
     shadow_error_rms_mps2: float = f(_number(-1.0))
+    certificate: dict = f(_mapping, default_factory=dict)
+    canary: dict = f(_mapping, default_factory=dict)
 
 
 # -- keys -----------------------------------------------------------------------------------------

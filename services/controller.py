@@ -12,6 +12,13 @@ estimate for the newest sample has not come within ``stale_timeout_s``, it flies
 local f̂ instead, says so on the bus, and keeps doing so until the estimator's estimates are
 back and warm. It never flies on a stale estimate. Mission commands and gain changes take
 effect at the next sample.
+
+Gain changes are checked against the stability certificate here, where they are applied: the
+estimator reports the physical Lipschitz constant of the network it flies and its ω_o
+(``NetworkMsg.certificate``), and a change of the z gains whose certificate then fails is
+refused with the margin in the reason unless the request carries ``override: true`` (applied,
+and an event says so). Until the estimator has reported, the check uses nothing it does not know:
+a gain change is refused as "certificate unknown" (also overridable).
 """
 from __future__ import annotations
 
@@ -21,13 +28,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from neso.certificate import flight_certificate, largest_certified_lipschitz
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.mission import COMMANDS, Mission, MissionConfig
 from neso.types import AttitudeSetpoint, StateMeasurement
-from runtime.params import Param, ParamSet
-from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
+from runtime.params import Param, ParamSet, Refusal
+from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 _KEEP = 64  # samples of unmatched states/estimates kept
 EXTRA_COMMANDS = ("arm", "disarm", "hold", "abort")
@@ -92,6 +100,35 @@ class ControllerCore:
         self._pending_local = np.zeros(3)
         self._last_output: list = []
         self.armed = config.mission != "idle"
+        self.network_certificate: dict = {}  # the estimator's latest NetworkMsg.certificate
+
+    # -- the certificate ------------------------------------------------------------------
+    def on_network(self, msg: NetworkMsg) -> None:
+        self.network_certificate = dict(msg.certificate)
+
+    def _certificate_inputs(self) -> tuple[float, float] | None:
+        c = self.network_certificate
+        lip, omega = c.get("lipschitz_phys"), c.get("omega_o")
+        if isinstance(lip, (int, float)) and isinstance(omega, (int, float)) and omega > 0:
+            return float(lip), float(omega)
+        return None
+
+    def prepare_gains(self, values: dict) -> None:
+        """Compute (and cache) the certified bound for the proposed z gains, outside any lock."""
+        inputs = self._certificate_inputs()
+        if inputs is not None:
+            largest_certified_lipschitz(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
+
+    def check_gains(self, values: dict) -> Refusal | None:
+        """Refuse (overridably) z gains under which the network flown is not certified."""
+        kp, kd = float(values["kp_z"]), float(values["kd_z"])
+        if (kp, kd) == (self.config.control.kp[2], self.config.control.kd[2]):
+            return None
+        inputs = self._certificate_inputs()
+        if inputs is None:
+            return Refusal("refused: certificate unknown (no network report from the estimator yet)", overridable=True)
+        cert = flight_certificate(inputs[0], kp=kp, kd=kd, omega_o=inputs[1])
+        return None if cert.holds else Refusal(f"refused: {cert.text()}", overridable=True)
 
     # -- operator inputs (applied at the next sample) ---------------------------------------
     def command(self, name: str, args: dict) -> tuple[bool, str]:
@@ -258,7 +295,8 @@ def run(args, bus) -> int:
     config = config_from_args(args)
     core = ControllerCore(config)
     c = config.control
-    params = ParamSet(CONTROLLER_PARAMS, {"kp_xy": c.kp[0], "kd_xy": c.kd[0], "kp_z": c.kp[2], "kd_z": c.kd[2]})
+    params = ParamSet(CONTROLLER_PARAMS, {"kp_xy": c.kp[0], "kd_xy": c.kd[0], "kp_z": c.kp[2], "kd_z": c.kd[2]},
+                      check=core.check_gains, prepare=core.prepare_gains)
     node = Node("controller", vehicle=args.vehicle, bus=bus, config=config, params=params)
     put_setpoint, put_reference = node.publisher("setpoint"), node.publisher("reference")
 
@@ -286,6 +324,7 @@ def run(args, bus) -> int:
 
     node.subscribe("state", on_state)
     node.subscribe("estimate", on_estimate)
+    node.subscribe("network", lambda msg, _received_s: core.on_network(msg))
     node.on_command(core.command)
     node.status_hook = lambda: ("flying on the LOCAL ESO (estimate stale)" if core.using_local else
                                 f"ok, {'armed' if core.armed else 'disarmed'}, segment {core.mission.segment}")

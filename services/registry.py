@@ -7,10 +7,11 @@ or ``tdr``), ``parent`` (the network it was warm-started from, ``""`` if none), 
 (the ``.rrd`` files it was trained on), ``created`` (UTC, ISO 8601), ``lipschitz_norm`` /
 ``lipschitz_phys`` (the bound, normalised and (m/s²) per unit z), ``certified_norm`` /
 ``certified_phys`` (exact SVD product, same units), ``val_loss`` (z-scored MSE) and
-``val_loss_physical`` ((m/s²)²), and ``certificate``: the small-gain certificate (paper Thm. 1,
-tight method) for the controller's z gains and the observer bandwidth at the certified physical
-L_N — ``holds``, ``margin`` (α, > 0 iff it holds), ``ultimate_bound`` (‖E‖ in mixed SI, null if it
-does not hold), ``max_certified_lipschitz`` (physical), and the gains it was computed for.
+``val_loss_physical`` ((m/s²)²), ``feature_set``, ``bound_units``, ``certificate``: the stability
+certificate for the z gains and observer bandwidth flown at the network's certified physical L_N
+(:meth:`neso.certificate.FlightCertificate.to_dict`: ``holds``, ``lipschitz_phys``,
+``max_certified``, ``margin``, the gains, ``text``), and ``predicted``: the closed-loop prediction
+on the recorded flights (``rmse_active_cm``, ``rmse_candidate_cm``, ``change``; empty if none).
 """
 from __future__ import annotations
 
@@ -29,20 +30,6 @@ from neso.network import LipschitzMLP
 DEFAULT_ROOT = "networks/registry"
 
 
-def small_gain_certificate(lipschitz_phys: float, *, kp: float, kd: float, omega_o: float) -> dict:
-    """The tight small-gain certificate at ``lipschitz_phys`` for one axis's gains, as plain JSON."""
-    from neso.certificate import CertificateInputs, certify_tight
-
-    res = certify_tight(CertificateInputs(kp=kp, kd=kd, omega_o=omega_o, lipschitz=lipschitz_phys))
-
-    def finite(x: float):
-        return float(x) if math.isfinite(x) else None
-
-    return {"holds": bool(res.holds), "margin": finite(res.alpha), "ultimate_bound": finite(res.ultimate_bound),
-            "max_certified_lipschitz": finite(res.max_certified_lipschitz), "kp": kp, "kd": kd, "omega_o": omega_o,
-            "method": "tight"}
-
-
 @dataclass(frozen=True)
 class Entry:
     """One stored network (see module docstring); ``path`` is the network file."""
@@ -58,6 +45,7 @@ class Entry:
                 "created": i.get("created", ""), "lipschitz_norm": i.get("lipschitz_norm"),
                 "lipschitz_phys": i.get("lipschitz_phys"), "val_loss": i.get("val_loss"),
                 "certificate_holds": (i.get("certificate") or {}).get("holds"),
+                "feature_set": i.get("feature_set", ""), "predicted_change": (i.get("predicted") or {}).get("change"),
                 "recordings": i.get("recordings", []), "path": self.path}
 
 
@@ -69,7 +57,7 @@ def new_id(vehicle: str, label: str, net: LipschitzMLP, now_s: float | None = No
 
 
 def store(net: LipschitzMLP, *, root: str | os.PathLike = DEFAULT_ROOT, vehicle: str, label: str, parent: str,
-          recordings: list[str], certificate: dict) -> Entry:
+          recordings: list[str], certificate: dict, predicted: dict | None = None) -> Entry:
     """Write ``net`` with its provenance into the registry and return its entry."""
     net_id = new_id(vehicle, label, net)
     info = {
@@ -79,14 +67,16 @@ def store(net: LipschitzMLP, *, root: str | os.PathLike = DEFAULT_ROOT, vehicle:
         "certified_norm": net.certified_lipschitz_normalised(), "certified_phys": net.certified_lipschitz_physical(),
         "val_loss": float(net.metadata.get("val_loss", "nan")),
         "val_loss_physical": float(net.metadata.get("val_loss_physical", "nan")),
-        "certificate": certificate,
+        "certificate": certificate, "feature_set": net.feature_set.key, "bound_units": net.bound_units,
+        "predicted": dict(predicted or {}),
     }
     meta = dict(net.metadata)
     meta.update({k: (v if isinstance(v, str) else json.dumps(v)) for k, v in info.items()
-                 if k not in ("lipschitz_norm", "lipschitz_phys", "certified_norm", "certified_phys")})
+                 if k not in ("lipschitz_norm", "lipschitz_phys", "certified_norm", "certified_phys", "feature_set",
+                              "bound_units")})
     meta["training_data"] = f"{label}:" + ",".join(Path(r).name for r in recordings)
     stored = LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std, net.output_mean, net.output_std,
-                          net.lipschitz_bound, meta)
+                          net.lipschitz_bound, meta, net.bound_units)
     folder = Path(root) / vehicle
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{net_id}.safetensors"

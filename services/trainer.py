@@ -4,14 +4,23 @@ One per vehicle. Training runs in a worker thread of this process (never in the 
 processes; torch is imported here only), one job at a time, so the node keeps answering health
 and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
 
-- ``train {recordings?, label?, lipschitz_bound?, epochs?, offer?, seed?}``: queue a job; the
-  reply says the job number at once. ``recordings``: ``.rrd`` paths (default: the newest one in
-  ``--recordings-dir``, which may be the flight still being recorded: it is read up to its last
-  flush); ``label``: ``tdr`` (default; labels f_N + Δf̂, warm-started from the
-  network the estimator flies, keeping its normalisation and so its physical bound) or ``eso``
-  (labels x̂_3 flown under the ``eso`` pathway, trained from scratch); ``lipschitz_bound``: L_N
-  normalised (default: the active network's for ``tdr``, 1.0 for ``eso``); ``epochs`` (100);
-  ``offer`` (true: send the result to the estimator's gate); ``seed`` (0).
+- ``train {recordings?, mode?, label?, lipschitz_bound?, epochs?, offer?, force_offer?, seed?}``:
+  queue a job; the reply says the job number at once. ``recordings``: ``.rrd`` paths (default:
+  the newest one in ``--recordings-dir``, which may be the flight still being recorded: it is
+  read up to its last flush). ``mode``: ``tdr`` (default: warm-started from the network the
+  estimator flies, with its inputs and the label and normalisation of its recipe,
+  :mod:`neso.learning`) or ``base`` (from scratch on ESO-teacher flights, the default recipe).
+  ``label``: overrides the recipe's (``eso``, ``tdr``, ``applied``). ``lipschitz_bound``: in the
+  recipe's units (default: for physical recipes the largest bound the certificate allows for the
+  gains the vehicle flies, as the estimator reports them, times the recipe's fraction; for the
+  paper's, the active network's L_N); ``epochs`` (100); ``offer`` (true: send the result to the
+  estimator's gate); ``force_offer`` (offer even when predicted to fly worse); ``seed`` (0).
+
+Before it offers, the trainer flies the recorded flights again in closed loop
+(:mod:`sim.counterfactual`: the recorded reference, the disturbance reconstructed from the
+recording injected) with the active network and with the candidate on the same conditions; the
+predicted z RMSE change goes with the offer, into the registry and onto the dashboard. A
+candidate predicted to fly worse is stored but not offered unless ``force_offer``.
 - ``status``: what the worker is doing and the last result.
 
 A retried ``train`` is queued once (the node answers a repeated request id with the first answer).
@@ -31,13 +40,17 @@ import time
 from dataclasses import dataclass, field
 
 from neso.control import ControlConfig
+from neso.learning import LABELS
 from runtime.schema import NetworkMsg
 
-LABELS = ("tdr", "eso")
+MODES = ("tdr", "base")
 
 
 @dataclass(frozen=True)
 class TrainerConfig:
+    """``kp``, ``kd``, ``omega_o_rps``: the gains the certificate is computed for until the
+    estimator reports the ones flown."""
+
     registry: str = "networks/registry"
     recordings_dir: str = "out/recordings"
     kp: float = ControlConfig().kp[2]
@@ -52,11 +65,13 @@ class Job:
 
     number: int
     recordings: tuple[str, ...]
-    label: str
+    mode: str
+    label: str | None
     lipschitz_bound: float | None
     epochs: int
     offer: bool
     seed: int
+    force_offer: bool = False
 
 
 @dataclass
@@ -69,6 +84,7 @@ class JobResult:
     info: dict = field(default_factory=dict)
     timings_s: dict = field(default_factory=dict)
     offer: tuple[bool, str] | None = None
+    predicted: dict = field(default_factory=dict)
 
     def summary(self) -> str:
         i = self.info
@@ -76,16 +92,17 @@ class JobResult:
         times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings_s.items())
         offer = "" if self.offer is None else (f"; offer {'accepted' if self.offer[0] else 'REFUSED'}: "
                                                f"{self.offer[1]}")
-        return (f"{self.network_id} at {self.path}: {i.get('n_samples')} samples from {len(self.job.recordings)} "
-                f"recording(s), val_loss {i.get('val_loss'):.4g}, L_N {i.get('lipschitz_norm'):g} normalised = "
-                f"{i.get('lipschitz_phys'):.4g} physical (certified {i.get('certified_phys'):.4g}), small-gain "
-                f"{'holds' if cert.get('holds') else 'does not hold'} (max certified {cert.get('max_certified_lipschitz')})"
-                f"; {times}{offer}")
+        p = self.predicted
+        pred = (f"; predicted on the recorded flight(s): z RMSE {p['rmse_active_cm']:.2f} → {p['rmse_candidate_cm']:.2f} cm "
+                f"({p['change'] * 100:+.0f} %)" if "change" in p else "")
+        return (f"{self.network_id} at {self.path}: {i.get('n_samples')} {i.get('label')} samples "
+                f"({i.get('feature_set')}) from {len(self.job.recordings)} recording(s), val_loss {i.get('val_loss'):.4g}, "
+                f"certified L_N {i.get('certified_phys'):.4g} physical; {cert.get('text', '')}{pred}; {times}{offer}")
 
 
 def parse_job(number: int, args: dict, config: TrainerConfig) -> Job:
     """A :class:`Job` from command args; ``ValueError`` naming what is wrong."""
-    unknown = set(args) - {"recordings", "label", "lipschitz_bound", "epochs", "offer", "seed"}
+    unknown = set(args) - {"recordings", "mode", "label", "lipschitz_bound", "epochs", "offer", "force_offer", "seed"}
     if unknown:
         raise ValueError(f"unknown train args {sorted(unknown)}")
     recordings = args.get("recordings")
@@ -102,8 +119,11 @@ def parse_job(number: int, args: dict, config: TrainerConfig) -> Job:
     missing = [r for r in recordings if not os.path.isfile(r)]
     if missing:
         raise ValueError(f"no such recording(s): {missing}")
-    label = args.get("label", "tdr")
-    if label not in LABELS:
+    mode = args.get("mode", "tdr")
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    label = args.get("label")
+    if label is not None and label not in LABELS:
         raise ValueError(f"label must be one of {LABELS}, got {label!r}")
     bound = args.get("lipschitz_bound")
     if bound is not None and not (isinstance(bound, (int, float)) and not isinstance(bound, bool) and 0 < bound < 1e3):
@@ -111,68 +131,126 @@ def parse_job(number: int, args: dict, config: TrainerConfig) -> Job:
     epochs = args.get("epochs", config.epochs)
     if not (isinstance(epochs, int) and not isinstance(epochs, bool) and 1 <= epochs <= 10_000):
         raise ValueError(f"epochs must be an integer in [1, 10000], got {epochs!r}")
-    offer = args.get("offer", True)
-    if not isinstance(offer, bool):
-        raise ValueError("offer must be true or false")
+    offer, force_offer = args.get("offer", True), args.get("force_offer", False)
+    if not (isinstance(offer, bool) and isinstance(force_offer, bool)):
+        raise ValueError("offer and force_offer must be true or false")
     seed = args.get("seed", 0)
     if not (isinstance(seed, int) and not isinstance(seed, bool)):
         raise ValueError("seed must be an integer")
-    return Job(number, tuple(os.path.abspath(r) for r in recordings), label,
-               None if bound is None else float(bound), epochs, offer, seed)
+    return Job(number, tuple(os.path.abspath(r) for r in recordings), mode, label,
+               None if bound is None else float(bound), epochs, offer, seed, force_offer)
 
 
 def active_network(active: dict):
-    """The network the estimator flies, from ``NetworkMsg.active`` (its file, scaled to its L_N)."""
-    from neso.features import N_FEATURES
+    """The network the estimator flies, from ``NetworkMsg.active`` (its file, scaled to its certified L_N)."""
     from neso.netfile import load_network
 
     path = active.get("path", "")
     if not path or not os.path.isfile(path):
         raise ValueError(f"the active network {active.get('id')!r} has no file to warm-start from ({path!r})")
-    net = load_network(path, expected_inputs=N_FEATURES, expected_outputs=1)
-    bound = float(active.get("lipschitz_norm", net.lipschitz_bound))
-    return net.scaled_to_bound(bound) if bound < net.lipschitz_bound else net
+    net = load_network(path, expected_outputs=1)
+    flown = float(active.get("certified_phys", net.certified_lipschitz_physical()))
+    return net.scaled_to_bound(flown, "physical") if flown < net.certified_lipschitz_physical() * (1 - 1e-9) else net
 
 
-def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None, offer_fn=None) -> JobResult:
-    """Dataset → training → certificate → registry → offer (``offer_fn(path) -> (ok, message)``)."""
+def flown_gains(certificate: dict | None, config: TrainerConfig) -> tuple[float, float, float]:
+    """(k_p, k_d, ω_o) of the z axis as the estimator reports them flown, else the configured ones."""
+    c = certificate or {}
+    values = [c.get("kp"), c.get("kd"), c.get("omega_o")]
+    if all(isinstance(v, (int, float)) and v > 0 for v in values):
+        return tuple(float(v) for v in values)
+    return config.kp, config.kd, config.omega_o_rps
+
+
+def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None, offer_fn=None,
+              certificate: dict | None = None) -> JobResult:
+    """Dataset → training → certificate → closed-loop prediction → registry → offer
+    (``offer_fn(path, predicted) -> (ok, message)``). ``active``/``certificate``: the estimator's
+    latest ``NetworkMsg.active`` / ``.certificate``."""
+    from neso.certificate import flight_certificate
+    from neso.learning import DEFAULT_RECIPE, RECIPES, recipe_bound, recipe_of
     from neso.training import train_lipschitz_mlp
     from recordings.dataset import load_training_set
     from services import registry
 
     result = JobResult(job)
     t0 = time.perf_counter()
-    ts = load_training_set(list(job.recordings), job.label)
-    if ts.vehicle and ts.vehicle != vehicle:
-        raise ValueError(f"the recordings are of vehicle {ts.vehicle!r}, this trainer serves {vehicle!r}")
-    t1 = time.perf_counter()
-    result.timings_s["dataset"] = t1 - t0
+    kp, kd, omega_o = flown_gains(certificate, config)
     init = None
     parent = ""
-    if job.label == "tdr":
+    if job.mode == "tdr":
         if not active:
             raise ValueError("tdr starts from the active network, and no NetworkMsg came from the estimator yet")
         init = active_network(active)
         parent = str(active.get("id", ""))
-    bound = job.lipschitz_bound or (init.lipschitz_bound if init is not None else 1.0)
-    res = train_lipschitz_mlp(ts.z, ts.y_mps2, lipschitz_bound=bound, epochs=job.epochs, seed=job.seed, init=init,
-                              metadata={"vehicle": vehicle, "parent": parent})
+        recipe = recipe_of(init.metadata)
+        label, fset = job.label or recipe.tdr_label, init.feature_set.key
+    else:
+        recipe = RECIPES[DEFAULT_RECIPE]
+        label, fset = job.label or recipe.base_label, recipe.feature_set
+    lag = init.thrust_lag if init is not None and init.feature_set.uses_applied_thrust else None
+    ts = load_training_set(list(job.recordings), label, feature_set_key=fset, lag=lag)
+    if ts.vehicle and ts.vehicle != vehicle:
+        raise ValueError(f"the recordings are of vehicle {ts.vehicle!r}, this trainer serves {vehicle!r}")
+    t1 = time.perf_counter()
+    result.timings_s["dataset"] = t1 - t0
+    if job.lipschitz_bound is not None:
+        bound = job.lipschitz_bound
+    elif recipe.bound_units == "normalised" and init is not None:
+        bound = init.lipschitz_bound
+    else:
+        bound = recipe_bound(recipe, kp, kd, omega_o)
+    res = train_lipschitz_mlp(
+        ts.z, ts.y_mps2, lipschitz_bound=bound, bound_units=recipe.bound_units, epochs=job.epochs, seed=job.seed,
+        init=init, scalers=recipe.tdr_scalers if init is not None else "fit",
+        metadata={"vehicle": vehicle, "parent": parent, "feature_set": ts.feature_set, "recipe": recipe.name,
+                  "label": label, "thrust_lag_s": repr(ts.thrust_lag.time_constant_s),
+                  "thrust_delay_s": repr(ts.thrust_lag.delay_s)})
     t2 = time.perf_counter()
     result.timings_s["train"] = t2 - t1
-    cert = registry.small_gain_certificate(res.network.certified_lipschitz_physical(), kp=config.kp, kd=config.kd,
-                                           omega_o=config.omega_o_rps)
+    cert = flight_certificate(res.network.certified_lipschitz_physical(), kp=kp, kd=kd, omega_o=omega_o).to_dict()
     t3 = time.perf_counter()
     result.timings_s["certify"] = t3 - t2
-    entry = registry.store(res.network, root=config.registry, vehicle=vehicle, label=job.label, parent=parent,
-                           recordings=list(job.recordings), certificate=cert)
-    result.network_id, result.path = entry.id, os.path.abspath(entry.path)
-    result.info = dict(entry.info, n_samples=len(ts.y_mps2))
+    if init is not None:
+        result.predicted = predict_closed_loop(job.recordings, init, res.network, ts.thrust_lag, kp, kd, omega_o)
+        result.timings_s["predict"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    result.timings_s["store"] = t4 - t3
+    entry = registry.store(res.network, root=config.registry, vehicle=vehicle, label=label, parent=parent,
+                           recordings=list(job.recordings), certificate=cert, predicted=result.predicted)
+    result.network_id, result.path = entry.id, os.path.abspath(entry.path)
+    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set)
+    result.timings_s["store"] = time.perf_counter() - t4
     if job.offer and offer_fn is not None:
-        result.offer = offer_fn(result.path)
-        result.timings_s["offer"] = time.perf_counter() - t4
+        change = result.predicted.get("change")
+        if isinstance(change, float) and change >= 0 and not job.force_offer:
+            result.offer = (False, f"not offered: predicted to fly worse ({change * 100:+.0f} % z RMSE on the recorded "
+                                   "flight); train with force_offer=true to offer it anyway")
+        else:
+            t5 = time.perf_counter()
+            result.offer = offer_fn(result.path, result.predicted)
+            result.timings_s["offer"] = time.perf_counter() - t5
     return result
+
+
+def predict_closed_loop(recordings, active_net, candidate_net, lag, kp: float, kd: float, omega_o: float) -> dict:
+    """Fly the recorded flights again with the active and the candidate network (:mod:`sim.counterfactual`)."""
+    from dataclasses import replace
+
+    from neso.control import ControlConfig
+    from neso.eso import EsoConfig
+    from neso.estimator import NeuralESO, NeuralEsoConfig
+    from recordings.conditions import recorded_conditions
+    from recordings.reader import read_recording
+    from sim.counterfactual import predict_change
+
+    conditions = [c for path in recordings for c in recorded_conditions(read_recording(path), lag)]
+    if not conditions:
+        return {}
+    control = ControlConfig()
+    control = replace(control, kp=(*control.kp[:2], kp), kd=(*control.kd[:2], kd), dt_s=conditions[0].dt_s)
+    est_cfg = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=omega_o, dt_s=conditions[0].dt_s))
+    return predict_change(conditions, lambda net: NeuralESO(est_cfg, net),
+                          {"active": active_net, "candidate": candidate_net}, control)
 
 
 # -- bus adapter ------------------------------------------------------------------------------
@@ -194,14 +272,16 @@ def run(args, bus) -> int:
                            omega_o_rps=args.omega_o)
     node = Node("trainer", vehicle=args.vehicle, bus=bus, config=config)
     jobs: queue.Queue[Job] = queue.Queue()
-    state = {"active": None, "doing": "idle", "last": "", "next": 1}
+    state = {"active": None, "certificate": None, "doing": "idle", "last": "", "next": 1}
 
     def on_network(msg: NetworkMsg, _received_s: float) -> None:
         state["active"] = dict(msg.active)
+        state["certificate"] = dict(msg.certificate)
 
-    def offer(path: str) -> tuple[bool, str]:
+    def offer(path: str, predicted: dict) -> tuple[bool, str]:
         try:
-            reply = command(node.session, node.keys, "estimator", "offer", {"path": path}, timeout_s=5.0)
+            reply = command(node.session, node.keys, "estimator", "offer", {"path": path, "predicted": predicted},
+                            timeout_s=5.0)
         except ServiceUnavailable as exc:
             return False, str(exc)
         return reply.ok, reply.message
@@ -217,7 +297,7 @@ def run(args, bus) -> int:
             return False, str(exc)
         state["next"] += 1
         jobs.put(job)
-        return True, (f"job {job.number} queued: {job.label} on {len(job.recordings)} recording(s) "
+        return True, (f"job {job.number} queued: {job.mode} on {len(job.recordings)} recording(s) "
                       f"({', '.join(os.path.basename(r) for r in job.recordings)})")
 
     def worker(n: Node) -> None:
@@ -226,10 +306,10 @@ def run(args, bus) -> int:
                 job = jobs.get(timeout=0.2)
             except queue.Empty:
                 continue
-            state["doing"] = f"training job {job.number} ({job.label})"
-            n.event("info", f"job {job.number} started: {job.label} on {list(job.recordings)}")
+            state["doing"] = f"training job {job.number} ({job.mode})"
+            n.event("info", f"job {job.number} started: {job.mode} on {list(job.recordings)}")
             try:
-                result = train_job(job, config, n.keys.vehicle, state["active"], offer)
+                result = train_job(job, config, n.keys.vehicle, state["active"], offer, state["certificate"])
                 state["last"] = f"job {job.number} done: {result.network_id}"
                 n.event("info", f"job {job.number} done: {result.summary()}")
             except Exception as exc:  # a bad recording or request must not stop the trainer

@@ -11,28 +11,29 @@ import numpy as np
 import pytest
 
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
-from neso.hotswap import ShadowError, gate
+from neso.hotswap import Canary, CanaryConfig, ShadowError, gate
 from neso.netfile import load_network, network_to_bytes, save_network
 from neso.network import LipschitzMLP
-from runtime.schema import StateMsg
+from runtime.schema import ReferenceMsg, StateMsg
 from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
 from tests.unit.helpers import measurement, random_network
 
 REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base-L1.safetensors")
+BASE = str(REPO / "networks" / "base.safetensors")  # the network neso up flies (physical bound, certified)
 
 
 def with_meta(net: LipschitzMLP, **meta) -> LipschitzMLP:
     return LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std, net.output_mean, net.output_std,
-                        net.lipschitz_bound, {**net.metadata, **{k: str(v) for k, v in meta.items()}})
+                        net.lipschitz_bound, {**net.metadata, **{k: str(v) for k, v in meta.items()}}, net.bound_units)
 
 
-def candidate(seed=1, vehicle="uav1", **meta) -> LipschitzMLP:
+def candidate(seed=1, vehicle="uav1", scale=1.0, **meta) -> LipschitzMLP:
+    """The shipped base network perturbed, within its bound (or ``scale`` times it, uncertified)."""
     base = load_network(BASE)
     rng = np.random.default_rng(seed)
     ws = tuple(w + rng.normal(0, 0.02, w.shape) for w in base.weights)
     net = LipschitzMLP(ws, base.biases, base.input_mean, base.input_std, base.output_mean, base.output_std,
-                       1e9).scaled_to_bound(base.lipschitz_bound)
+                       1e9, dict(base.metadata), base.bound_units).scaled_to_bound(scale * base.lipschitz_bound)
     return with_meta(net, id=f"cand-{seed}", vehicle=vehicle, val_loss=0.05, **meta)
 
 
@@ -63,14 +64,16 @@ def test_network_swap_between_two_ticks_keeps_the_total_estimate_continuous_to_1
 def test_a_good_candidate_passes_with_its_findings():
     v = gate(network_to_bytes(candidate()), active=load_network(BASE), vehicle="uav1")
     assert v.passed, v.reason
-    assert v.findings["layers"] == "5→20→25→10→1" and float(v.findings["val_loss"]) == 0.05
+    base = load_network(BASE)
+    assert v.findings["layers"] == "→".join(map(str, base.layer_sizes)) and float(v.findings["val_loss"]) == 0.05
+    assert v.findings["feature_set"] == base.feature_set.key
 
 
-def _with_stated_bound(data: bytes, bound: float) -> bytes:
-    """The same tensors under a header that states another normalised L_N."""
+def _with_header(data: bytes, **meta: str) -> bytes:
+    """The same tensors under a header whose metadata says otherwise (e.g. another stated L_N)."""
     (hlen,) = struct.unpack("<Q", data[:8])
     header = json.loads(data[8:8 + hlen])
-    header["__metadata__"]["lipschitz_bound_normalised"] = repr(bound)
+    header["__metadata__"].update(meta)
     raw = json.dumps(header).encode()
     raw += b" " * (-len(raw) % 8)
     return struct.pack("<Q", len(raw)) + raw + data[8 + hlen:]
@@ -88,6 +91,8 @@ def _nan_weights(data: bytes) -> bytes:
     (lambda: _nan_weights(network_to_bytes(candidate())), "non-finite"),
     (lambda: network_to_bytes(with_meta(random_network(3, sizes=(5, 16, 16, 1), bound=1.0), vehicle="uav1",
                                         val_loss=0.1)), "wrong layer shapes"),
+    (lambda: _with_header(network_to_bytes(candidate()), feature_set="telepathy@1"), "unknown feature set"),
+    (lambda: _with_header(network_to_bytes(candidate()), feature_set="state@1"), "has 4 inputs"),
     (lambda: network_to_bytes(candidate(vehicle="uav2")), "vehicle 'uav2'"),
     (lambda: network_to_bytes(with_meta(candidate(), val_loss="")), "no validation loss"),
 ])
@@ -99,8 +104,8 @@ def test_bad_candidates_are_refused_with_the_reason(make, reason):
 def test_a_certificate_over_its_bound_is_refused():
     net = candidate()
     over = LipschitzMLP(tuple(w * 1.1 for w in net.weights), net.biases, net.input_mean, net.input_std,
-                        net.output_mean, net.output_std, 1e9, net.metadata)
-    data = _with_stated_bound(network_to_bytes(over), 1.0)
+                        net.output_mean, net.output_std, 1e9, net.metadata, net.bound_units)
+    data = _with_header(network_to_bytes(over), lipschitz_bound=repr(net.lipschitz_bound))
     v = gate(data, active=load_network(BASE), vehicle="uav1")
     assert not v.passed and "certificate" in v.reason and "exceeds" in v.reason, v.reason
 
@@ -169,13 +174,172 @@ def test_an_l_n_change_shows_where_the_network_came_from_and_is_fixed_after_a_pr
     net, source = load_flown_network(BASE)
     choice = NetworkChoice(net, source, str(REPO / "networks"))
     core = EstimatorCore(EstimatorConfig(network=BASE), net, choice)
-    core.apply({"lipschitz_bound": 0.5})
-    assert core.active_info["source"] == "file" and core.active_info["path"].endswith("base-L0.5.safetensors")
-    core.apply({"lipschitz_bound": 0.7})
+    half = load_network(REPO / "networks" / "base-x0.5.safetensors").lipschitz_bound_physical()
+    core.apply({"lipschitz_bound": half})
+    assert core.active_info["source"] == "file" and core.active_info["path"].endswith("base-x0.5.safetensors")
+    core.apply({"lipschitz_bound": 0.8 * net.lipschitz_bound_physical()})
     assert core.active_info["source"] == "scaled" and core.active_info["path"] == BASE
+    core.on_state(state(0), 0.0)  # the change lands at the next sample
+    assert core.estimator.network.certified_lipschitz_physical() <= 0.8 * net.lipschitz_bound_physical() * (1 + 1e-9)
     path = str(tmp_path / "cand.safetensors")
     save_network(path, candidate())
-    core.on_state(state(0), 0.0)
     core.accept(core.check_offer(path), path)
     assert core.promote()[0]
     assert "fixed" in core.check({"lipschitz_bound": 0.3, "pathway": "neural_eso"})
+
+
+# -- the certificate, checked where the change is applied -------------------------------------
+def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overridden():
+    from runtime.params import ParamSet
+
+    from services.estimator import estimator_params
+
+    net, source = load_flown_network(BASE)
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, str(REPO / "networks")))
+    assert core.certificate().holds, core.certificate().text()
+    double = load_network(REPO / "networks" / "base-x2.safetensors").lipschitz_bound_physical()
+    cert = core.certificate_of(core.choice.network_for(double)[0])
+    assert not cert.holds and cert.margin < 0
+    params = ParamSet(estimator_params(core.config, net.lipschitz_bound_physical()), check=core.check)
+    ok, why, _ = params.request({"lipschitz_bound": double})
+    assert not ok and "certificate FAILS" in why and f"margin {cert.margin:+.4g}" in why and "override" in why
+    assert params.take_pending() == {} and params.take_overrides() == []
+    ok, why, _ = params.request({"lipschitz_bound": double, "override": True})
+    assert ok and why == ""
+    notes = params.take_overrides()
+    assert len(notes) == 1 and "by override" in notes[0] and "certificate FAILS" in notes[0]
+    core.apply(params.take_pending())
+    core.on_state(state(0), 0.0)
+    assert not core.certificate().holds and core.network_msg().certificate["holds"] is False
+
+
+def test_the_certificate_follows_the_controller_gains():
+    net, source = load_flown_network(BASE)
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, None))
+    assert core.certificate().holds and core.set_gains(*core.gains_z) is None
+    note = core.set_gains(core.gains_z[0], 0.5)  # a soft derivative gain shrinks what is certified
+    assert note is not None and "FAILS" in note
+    msg = core.network_msg()
+    assert msg.certificate["kd"] == 0.5 and msg.certificate["holds"] is False
+
+
+def test_an_uncertified_startup_network_is_not_flown_unless_allowed():
+    from services.estimator import startup_network
+
+    paper, _ = load_flown_network(str(REPO / "networks" / "paper" / "base-L1.safetensors"))
+    gains = (10.0, 6.0)
+    net, (level, text) = startup_network(EstimatorConfig(network="paper"), paper, gains)
+    assert net is None and level == "error" and "NOT flown" in text and "FAILS" in text
+    net, (level, text) = startup_network(EstimatorConfig(network="paper", allow_uncertified=True), paper, gains)
+    assert net is paper and level == "warning" and "OUTSIDE" in text
+    good, _ = load_flown_network(BASE)
+    assert startup_network(EstimatorConfig(), good, gains)[0] is good
+
+
+def test_promoting_an_uncertified_or_predicted_worse_candidate_needs_force(core, tmp_path):
+    path = str(tmp_path / "wide.safetensors")
+    save_network(path, candidate(scale=3.0))
+    core.on_state(state(0), 0.0)
+    core.accept(core.check_offer(path), path)
+    ok, why = core.promote()
+    assert not ok and "certificate FAILS" in why and "force" in why
+    good = str(tmp_path / "good.safetensors")
+    save_network(good, candidate())
+    core.accept(core.check_offer(good), good, {"rmse_active_cm": 1.0, "rmse_candidate_cm": 1.2, "change": 0.2})
+    ok, why = core.promote()
+    assert not ok and "predicted to fly worse" in why and "+20 %" in why
+    ok, why = core.promote(force=True)
+    assert ok and "by force" in why
+
+
+# -- the canary --------------------------------------------------------------------------------
+def test_the_canary_rolls_back_a_network_that_tracks_worse_on_the_same_segment():
+    canary = Canary(CanaryConfig(window_samples=50, margin=0.1))
+    rng = np.random.default_rng(0)
+    for k in range(120):
+        canary.observe("lemniscate", 1, 0.01 * math.sin(k / 5) + rng.normal(0, 1e-3))
+    canary.arm()
+    verdict = None
+    for k in range(120):  # a new run of the same segment, twice the error at the same places
+        verdict = verdict or canary.observe("lemniscate", 3, 0.02 * math.sin(k / 5) + rng.normal(0, 1e-3))
+    assert verdict is not None and verdict.rollback and verdict.samples == 50 and verdict.change > 0.5
+    assert not canary.armed and "rolled back" in verdict.text()
+
+
+def test_the_canary_keeps_a_network_that_tracks_better_and_says_so():
+    canary = Canary(CanaryConfig(window_samples=50, margin=0.1))
+    for k in range(80):
+        canary.observe("hover", 1, 0.01 * (-1) ** k)
+    canary.arm()
+    verdicts = [canary.observe("hover", 1, 0.008 * (-1) ** k) for k in range(60)]  # the same run goes on
+    verdict = next(v for v in verdicts if v is not None)
+    assert not verdict.rollback and verdict.change < 0 and "kept" in verdict.text()
+
+
+def test_the_canary_does_not_judge_on_millimetres_of_noise():
+    canary = Canary(CanaryConfig(window_samples=30, margin=0.1, min_rms_m=0.002))
+    for k in range(40):
+        canary.observe("hover", 1, 1e-4 * (-1) ** k)
+    canary.arm()
+    verdicts = [canary.observe("hover", 1, 1.5e-3 * (-1) ** k) for k in range(40)]  # 15 x worse, still 1.5 mm
+    assert not next(v for v in verdicts if v is not None).rollback
+
+
+def _reference(seq, z_ref, segment):
+    return ReferenceMsg(seq=seq, stamp_s=1.0, t_s=0.02 * (seq + 1), pos_enu_m=(0.0, 0.0, z_ref), vel_enu_mps=(0.0, 0.0, 0.0),
+                        acc_enu_mps2=(0.0, 0.0, 0.0), yaw_rad=0.0, segment=segment)
+
+
+def test_the_estimator_rolls_back_by_itself_between_two_samples_and_says_why(tmp_path):
+    net, source = load_flown_network(BASE)
+    config = EstimatorConfig(network=BASE, canary=CanaryConfig(window_samples=40))
+    core = EstimatorCore(config, net, NetworkChoice(net, source, None))
+    path = str(tmp_path / "cand.safetensors")
+    save_network(path, candidate())
+    for k in range(100):  # 2 s of hover 1 mm off the reference
+        core.on_state(state(k, z=0.3), 0.0)
+        core.on_reference(_reference(k, 0.3 + 0.001 * math.sin(k / 5) - 0.01 * math.sin(k / 5), "hover"))
+    core.accept(core.check_offer(path), path)
+    assert core.promote()[0] and core.network_msg().canary["armed"]
+    for k in range(100, 160):  # after the promotion the same hover is tracked three times worse
+        if core.estimator.network is not None and core.network_id != "cand-1":
+            break
+        core.on_state(state(k, z=0.3), 0.0)
+        core.on_reference(_reference(k, 0.3 + 0.001 * math.sin(k / 5) - 0.03 * math.sin(k / 5), "hover"))
+    assert core.network_id == net.metadata["id"], "rolled back to the base network"
+    level, text = core.events[-1]
+    assert level == "warning" and "rolled back" in text and "hover" in text
+    msg = core.network_msg()
+    assert not msg.canary["armed"] and "rolled back" in msg.canary["last"] and msg.previous["id"] == "cand-1"
+    before = core.on_state(state(k + 1, z=0.3), 0.0)[0]
+    assert before.network_id == net.metadata["id"]
+
+
+def test_the_canary_tripwire_rolls_back_a_growing_error_at_once():
+    canary = Canary(CanaryConfig(window_samples=500, trip_samples=50, trip_factor=3.0))
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        canary.observe("hover", 1, rng.normal(0, 0.005))
+    canary.arm()
+    verdicts = [canary.observe("hover", 1, 0.005 * 1.15 ** k * math.sin(k / 3)) for k in range(60)]
+    first = next(k for k, v in enumerate(verdicts) if v is not None)
+    verdict = verdicts[first]
+    assert verdict.rollback and verdict.tripwire and first < 60 and "tripwire" in verdict.text()
+
+
+def test_the_canary_keeps_an_equal_network_whose_window_differs_by_chance():
+    """Equal networks, different gust realisations: a ratio above 1 + margin but inside the noise floor."""
+    canary = Canary(CanaryConfig(window_samples=500, margin=0.1))
+    rng = np.random.default_rng(4)
+    from scipy.signal import lfilter
+
+    slow = lfilter([0.05], [1.0, -0.95], rng.normal(0, 1, 2000))  # gust-like, 0.4 s correlation: windows differ
+    for k in range(1000):
+        canary.observe("hover", 1, 0.004 * slow[k])
+    canary.arm()
+    verdicts = [canary.observe("hover", 1, 0.0045 * slow[1000 + k]) for k in range(500)]
+    decided = [v for v in verdicts if v is not None]
+    assert len(decided) == 1 and verdicts[-1] is decided[0], "decided once, at the end of the window"
+    verdict = decided[0]
+    assert not verdict.tripwire and verdict.threshold > 1.1, verdict.text()
+    assert verdict.rollback == (verdict.rms_after_m > verdict.rms_before_m * verdict.threshold)

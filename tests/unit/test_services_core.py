@@ -14,7 +14,7 @@ from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, es
 from services.source import MocapConfig, MocapSource, frame_matrix
 
 REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base-L1.safetensors")
+BASE = str(REPO / "networks" / "base.safetensors")
 
 
 def state(seq, z=1.0, t=None):
@@ -44,7 +44,12 @@ def test_param_set_refuses_invalid_values_with_the_reason_and_changes_nothing():
     assert ps.take_pending() == {"gain": 2.0} and ps.effective()["gain"] == 2.0
 
 
-# -- estimator --------------------------------------------------------------------------------
+# -- estimator ---------------------------------------------------------------------------------
+def _bound(stem: str) -> float:
+    """The physical L_N a shipped network states."""
+    return load_flown_network(str(REPO / "networks" / f"{stem}.safetensors"))[0].lipschitz_bound_physical()
+
+
 @pytest.fixture(scope="module")
 def choice():
     net, source = load_flown_network(BASE)
@@ -52,32 +57,36 @@ def choice():
 
 
 def test_a_bound_with_a_trained_network_on_disk_loads_it(choice):
-    assert choice.refusal(0.5) is None
-    net, note = choice.network_for(0.5)
-    assert net.lipschitz_bound == 0.5 and "base-L0.5" in note and "trained for" in note
+    half = _bound("base-x0.5")
+    assert choice.refusal(half) is None
+    net, note = choice.network_for(half)
+    assert net.lipschitz_bound_physical() == half and "base-x0.5" in note and "trained for" in note
 
 
 def test_a_bound_without_one_scales_the_loaded_network_to_meet_its_certificate(choice):
-    net, note = choice.network_for(0.7)
-    assert net.certified_lipschitz_normalised() <= 0.7 and "scaled" in note
+    bound = 0.9 * _bound("base")
+    net, note = choice.network_for(bound)
+    assert net.certified_lipschitz_physical() <= bound * (1 + 1e-9) and "scaled" in note
 
 
 def test_a_bound_above_the_training_bound_without_a_network_is_refused(choice):
-    assert "above" in choice.refusal(3.0)
-    assert choice.refusal(2.0) is None  # base-L2 is on disk
+    assert "above" in choice.refusal(1.5 * _bound("base"))
+    assert choice.refusal(_bound("base-x2")) is None  # base-x2 is on disk
+    assert choice.refusal(0.5 * _bound("base")) is None  # scaling down is always possible
 
 
 def test_estimator_core_applies_pathway_and_bound_at_the_next_sample(choice):
     core = EstimatorCore(EstimatorConfig(network=BASE), choice.loaded, choice)
-    ps = ParamSet(estimator_params(core.config, 1.0), check=core.check)
+    ps = ParamSet(estimator_params(core.config, _bound("base")), check=core.check)
     assert not ps.request({"lipschitz_bound": 5.0})[0]
     out = core.on_state(state(0), 0.0)
     assert out[0].pathway == "neural_eso" and out[0].warm_ticks == 1
-    assert ps.request({"pathway": "eso", "lipschitz_bound": 0.5})[0]
+    half = _bound("base-x0.5")
+    assert ps.request({"pathway": "eso", "lipschitz_bound": half})[0]
     note = core.apply(ps.take_pending())
-    assert "pathway eso" in note and "base-L0.5" in note
+    assert "pathway eso" in note and "base-x0.5" in note
     out = core.on_state(state(1), 0.0)
-    assert out[0].pathway == "eso" and out[0].network_id.endswith("@L0.5")
+    assert out[0].pathway == "eso" and out[0].network_id == f"base-x0.5@L{half:.4g}"
     assert core.on_state(state(1), 0.0) == out, "a re-sent sample gets the same answer"
 
 

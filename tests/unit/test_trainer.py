@@ -4,17 +4,21 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from neso.hotswap import gate
 from neso.netfile import load_network
+from neso.certificate import largest_certified_lipschitz
+from neso.learning import RECIPES
 from services import registry
 from services.trainer import Job, TrainerConfig, parse_job, train_job
-from tests.unit.test_recordings import flight_messages, write
+from tests.unit.test_recordings import EXAMPLE, flight_messages, write
 
 REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base-L1.safetensors")
-ACTIVE = {"id": "base-L1.0", "path": BASE, "lipschitz_norm": 1.0}
+BASE = str(REPO / "networks" / "base.safetensors")
+ACTIVE = {"id": "base", "path": BASE, "certified_phys": load_network(BASE).certified_lipschitz_physical()}
+FLOWN = {"kp": 10.0, "kd": 6.0, "omega_o": 15.0}  # as NetworkMsg.certificate reports the gains flown
 
 
 @pytest.fixture
@@ -24,50 +28,73 @@ def rrd(tmp_path):
     return str(path)
 
 
-def test_a_tdr_job_trains_from_the_active_network_stores_certifies_and_offers(rrd, tmp_path):
+def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_offers(tmp_path):
+    """The example recording (a real 12 s landing flown by this system) retrained as TDR with the recipe of the
+    active network: its inputs, the lag-consistent label, z-scores refitted, the certified bound for the gains flown."""
     config = TrainerConfig(registry=str(tmp_path / "registry"))
     offered = []
-    job = parse_job(1, {"recordings": [rrd], "label": "tdr", "epochs": 3}, config)
-    result = train_job(job, config, "uav1", ACTIVE, lambda p: offered.append(p) or (True, "in shadow"))
-    assert offered == [result.path] and result.offer == (True, "in shadow")
-    assert set(result.timings_s) == {"dataset", "train", "certify", "store", "offer"}
-    net = load_network(result.path)
-    base = load_network(BASE)
-    assert net.layer_sizes == base.layer_sizes and (net.input_std == base.input_std).all(), "TDR keeps normalisation"
-    assert net.metadata["parent"] == "base-L1.0" and net.metadata["vehicle"] == "uav1"
-    assert json.loads(net.metadata["recordings"]) == [rrd]
+    job = parse_job(1, {"recordings": [str(EXAMPLE)], "epochs": 3, "force_offer": True}, config)
+    result = train_job(job, config, "uav1", ACTIVE, lambda p, pred: offered.append((p, pred)) or (True, "in shadow"),
+                       FLOWN)
+    assert offered == [(result.path, result.predicted)] and result.offer == (True, "in shadow")
+    assert set(result.timings_s) == {"dataset", "train", "certify", "predict", "store", "offer"}
+    net, base = load_network(result.path), load_network(BASE)
+    recipe = RECIPES[base.metadata["recipe"]]
+    assert net.feature_set is base.feature_set and net.layer_sizes == base.layer_sizes
+    assert net.metadata["label"] == recipe.tdr_label == "applied" and net.metadata["recipe"] == recipe.name
+    assert not np.array_equal(net.input_std, base.input_std), "z-scores refitted on the new data (recipe 'fit')"
+    l_max = largest_certified_lipschitz(10.0, 6.0, 15.0)
+    assert net.bound_units == "physical" and net.lipschitz_bound == pytest.approx(recipe.certified_fraction * l_max)
+    assert net.certified_lipschitz_physical() <= net.lipschitz_bound * (1 + 1e-9)
+    assert net.metadata["parent"] == "base" and net.metadata["vehicle"] == "uav1"
+    assert json.loads(net.metadata["recordings"]) == [str(EXAMPLE)]
     assert gate(Path(result.path).read_bytes(), active=base, vehicle="uav1").passed
     (entry,) = registry.entries(config.registry)
     assert entry.id == result.network_id
-    row = entry.row()
-    assert row["label"] == "tdr" and row["lipschitz_norm"] == 1.0 and row["lipschitz_phys"] == pytest.approx(
-        base.lipschitz_bound_physical())
     cert = entry.info["certificate"]
-    assert cert["holds"] is False and cert["max_certified_lipschitz"] == pytest.approx(0.763, rel=1e-2), \
-        "L_N = 31.6 physical is far above what the z gains certify (README)"
-    assert entry.info["val_loss"] >= 0
+    assert cert["holds"] is True and cert["max_certified"] == pytest.approx(l_max) and cert["margin"] > 0
+    pred = entry.info["predicted"]
+    assert pred == result.predicted and pred["seconds"] > 5
+    assert pred["rmse_active_cm"] > 0 and pred["rmse_candidate_cm"] > 0
+    assert pred["change"] == pytest.approx(pred["rmse_candidate_cm"] / pred["rmse_active_cm"] - 1)
+    assert entry.row()["predicted_change"] == pred["change"] and entry.info["val_loss"] >= 0
+
+
+def test_a_candidate_predicted_to_fly_worse_is_stored_but_not_offered(tmp_path):
+    config = TrainerConfig(registry=str(tmp_path / "registry"))
+    offered = []
+    # a bound of 1e-4: the candidate is flat, it cannot do what the base network does
+    job = parse_job(1, {"recordings": [str(EXAMPLE)], "epochs": 1, "lipschitz_bound": 1e-4}, config)
+    result = train_job(job, config, "uav1", ACTIVE, lambda p, pred: offered.append(p) or (True, ""), FLOWN)
+    if result.predicted["change"] >= 0:
+        assert offered == [] and not result.offer[0] and "predicted to fly worse" in result.offer[1]
+    else:
+        assert offered == [result.path]
+    assert len(registry.entries(config.registry)) == 1
 
 
 def test_an_eso_job_trains_from_scratch_at_the_bound_asked(tmp_path):
     path = tmp_path / "eso.rrd"
     write(path, flight_messages(300, pathway="eso"))
     config = TrainerConfig(registry=str(tmp_path / "registry"))
-    job = parse_job(1, {"recordings": [str(path)], "label": "eso", "epochs": 2, "lipschitz_bound": 0.5,
+    job = parse_job(1, {"recordings": [str(path)], "mode": "base", "epochs": 2, "lipschitz_bound": 0.5,
                         "offer": False}, config)
     result = train_job(job, config, "uav1", None)
-    assert result.offer is None and load_network(result.path).lipschitz_bound == 0.5
-    assert load_network(result.path).metadata["parent"] == ""
+    net = load_network(result.path)
+    assert result.offer is None and net.lipschitz_bound == 0.5 and net.bound_units == "physical"
+    assert net.metadata["parent"] == "" and net.metadata["label"] == "eso" and result.predicted == {}
 
 
 def test_jobs_that_cannot_be_done_are_refused_with_the_reason(rrd, tmp_path):
     config = TrainerConfig(registry=str(tmp_path / "registry"), recordings_dir=str(tmp_path / "none"))
     for args, reason in (({}, "no recordings given"), ({"recordings": ["/nope.rrd"]}, "no such recording"),
-                         ({"recordings": [rrd], "label": "x"}, "label"), ({"recordings": [rrd], "epochs": 0}, "epochs"),
+                         ({"recordings": [rrd], "label": "x"}, "label"), ({"recordings": [rrd], "mode": "x"}, "mode"),
+                         ({"recordings": [rrd], "epochs": 0}, "epochs"),
                          ({"recordings": [rrd], "lipschitz_bound": -1}, "lipschitz_bound"),
                          ({"recordings": [rrd], "bogus": 1}, "unknown")):
         with pytest.raises(ValueError, match=reason):
             parse_job(1, args, config)
-    job = Job(1, (rrd,), "tdr", None, 2, True, 0)
+    job = Job(1, (rrd,), "tdr", None, None, 2, True, 0)
     with pytest.raises(ValueError, match="no NetworkMsg"):
         train_job(job, config, "uav1", None)
     with pytest.raises(ValueError, match="vehicle 'uav1'"):
