@@ -1,10 +1,16 @@
 """``neso certify``: the small-gain stability certificate of the paper's Section IV.
 
-Exit code 0 when the certificate holds for the chosen method (``both``: the tight one), 1 when it does not.
+Exit code 0 when the certificate holds for the chosen method (``both``: the tight one), 1 when it does
+not, 2 for bad input (a network file that cannot be read, invalid gains).
+
+``--network FILE|default``: the L_N certified is the network's exact physical Lipschitz constant (the
+SVD product of its weights with the z-scores folded in); ``default`` is the network ``neso up`` flies.
+The gains default to the controller's (z axis) and the observer bandwidth to the estimator's.
 
 ``--json`` output: the chosen method's fields at top level (at least ``holds``, ``alpha_e``, ``alpha_o``,
 ``ultimate_bound``, ``max_certified_lipschitz``); with ``--method both`` (default) the top level is the TIGHT
-certificate and both full results are nested under ``"literal"`` and ``"tight"``. Non-finite numbers are ``null``.
+certificate and both full results are nested under ``"literal"`` and ``"tight"``; with ``--network`` also
+``network`` (path, id, inputs, both bounds). Non-finite numbers are ``null``.
 Units: ``L_N`` in (m/s²) per unit of the mixed-SI network input z (physical, not normalised); bounds on
 ``‖E‖``, ``E = [e, ė, x̃1, x̃2, f̃]`` in mixed SI (m, m/s, m, m/s, m/s²).
 """
@@ -17,6 +23,15 @@ import math
 _DEFAULTS = dict(L1=5.0, Lu=20.0, ref_vel_max=0.5, ref_acc_max=1.0)
 
 
+def _flight_defaults() -> tuple[float, float, float, str]:
+    """(k_p, k_d of z, ω_o, default network) as the services start: their config dataclasses."""
+    from neso.control import ControlConfig
+    from services.estimator import EstimatorConfig
+
+    c, e = ControlConfig(), EstimatorConfig()
+    return c.kp[2], c.kd[2], e.omega_o_rps, e.network
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``certify`` on an ``argparse`` sub-parsers object and return its parser."""
     p = subparsers.add_parser(
@@ -26,10 +41,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "constant. L_N is the PHYSICAL Lipschitz constant ((m/s^2) per unit of mixed-SI z); a normalised "
         "bound converts as L_phys = L_norm * sigma_y / min(sigma_z).",
     )
-    p.add_argument("--kp", type=float, required=True, help="proportional gain, 1/s^2")
-    p.add_argument("--kd", type=float, required=True, help="derivative gain, 1/s")
-    p.add_argument("--omega-o", type=float, required=True, help="observer bandwidth, rad/s")
-    p.add_argument("--lipschitz", type=float, required=True, help="network Lipschitz constant L_N (physical)")
+    kp, kd, omega_o, _ = _flight_defaults()
+    p.add_argument("--kp", type=float, default=kp, help="proportional gain, 1/s^2 (default: the controller's z, %(default)s)")
+    p.add_argument("--kd", type=float, default=kd, help="derivative gain, 1/s (default: the controller's z, %(default)s)")
+    p.add_argument("--omega-o", type=float, default=omega_o, help="observer bandwidth, rad/s (default %(default)s)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--lipschitz", type=float, help="network Lipschitz constant L_N (physical)")
+    what.add_argument("--network", metavar="FILE|default",
+                      help="certify this network file's exact physical L_N ('default': the network neso up flies)")
     p.add_argument("--L1", type=float, default=_DEFAULTS["L1"], help="bound on |df/dt|, m/s^3 (default %(default)s)")
     p.add_argument("--Lu", type=float, default=_DEFAULTS["Lu"], help="bound on |du/dt|, z-units/s (default %(default)s)")
     p.add_argument("--ref-vel-max", type=float, default=_DEFAULTS["ref_vel_max"], help="|q*'| bound, m/s (default %(default)s)")
@@ -46,11 +65,29 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def _inputs(args):
+def _network(args) -> tuple[float, dict]:
+    """(L_N physical, what the JSON says of the network); ValueError naming why a file is refused."""
+    from neso.netfile import NetworkFileError, load_network
+
+    path = _flight_defaults()[3] if args.network == "default" else args.network
+    try:
+        net = load_network(path)
+    except FileNotFoundError:
+        raise ValueError(f"no such network file: {path}") from None
+    except (OSError, NetworkFileError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    lip = net.certified_lipschitz_physical()
+    return lip, {"path": path, "id": net.metadata.get("id", ""), "feature_set": net.feature_set.key,
+                 "bound_units": net.bound_units, "lipschitz_bound": net.lipschitz_bound,
+                 "certified_lipschitz_physical": lip,
+                 "certified_lipschitz_normalised": net.certified_lipschitz_normalised()}
+
+
+def _inputs(args, lipschitz: float):
     from neso.certificate import CertificateInputs
 
     return CertificateInputs(
-        kp=args.kp, kd=args.kd, omega_o=args.omega_o, lipschitz=args.lipschitz, n_axes=args.n_axes,
+        kp=args.kp, kd=args.kd, omega_o=args.omega_o, lipschitz=lipschitz, n_axes=args.n_axes,
         L_1=args.L1, L_u=args.Lu, ref_vel_max=args.ref_vel_max, ref_acc_max=args.ref_acc_max,
         lambda_c_rule=args.lambda_c_rule,
     )
@@ -81,8 +118,12 @@ def run(args) -> int:
     """Compute, print (text or ``--json``) and return 0 if the certificate holds, 1 otherwise."""
     from neso.certificate import certify_literal, certify_tight
 
+    network = None
     try:
-        inputs = _inputs(args)
+        lipschitz = args.lipschitz
+        if args.network is not None:
+            lipschitz, network = _network(args)
+        inputs = _inputs(args, lipschitz)
     except ValueError as exc:
         print(f"neso certify: {exc}")
         return 2
@@ -104,8 +145,14 @@ def run(args) -> int:
             "ref_acc_max": inputs.ref_acc_max, "n_axes": inputs.n_axes, "lambda_c_rule": inputs.lambda_c_rule,
         }
         out["method_requested"] = args.method
+        if network is not None:
+            out["network"] = network
         print(json.dumps(out, indent=2))
     else:
+        if network is not None:
+            print(f"network {network['path']} ({network['id']}, inputs {network['feature_set']}): exact physical L_N "
+                  f"{network['certified_lipschitz_physical']:.4g} (m/s^2)/unit z "
+                  f"({network['certified_lipschitz_normalised']:.4g} normalised)")
         print(f"Neural-ESO certificate: kp={inputs.kp:g} 1/s^2, kd={inputs.kd:g} 1/s, omega_o={inputs.omega_o:g} "
               f"rad/s, L_N={inputs.lipschitz:g} (m/s^2)/unit z; L1={inputs.L_1:g} m/s^3, Lu={inputs.L_u:g}, "
               f"C_f={inputs.C_f:.4g} m/s^3, lambda_c={inputs.lambda_c:.4g} ({inputs.lambda_c_rule})")

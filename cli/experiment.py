@@ -17,24 +17,38 @@ def add_parser(subparsers) -> None:
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default 100, as the paper)")
     p.add_argument("--workers", type=int, default=0, help="flight processes (default: one per core)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--recipes", default=None,
+                   help="comma-separated recipes flown side by side, the first reported first "
+                        "(default: certified,paper; see neso/learning.py)")
 
 
 def run(args) -> int:
     from dataclasses import replace
 
+    from neso.learning import RECIPES
     from sim.experiments import PaperConfig, results_json, run_paper
-    from sim.report import format_comparisons, format_tables
+    from sim.report import format_comparisons, format_recipe_header, format_tables
 
     config = replace(PaperConfig(), trials=args.trials, workers=args.workers, seed=args.seed)
+    if args.recipes:
+        names = tuple(n.strip() for n in args.recipes.split(",") if n.strip())
+        unknown = [n for n in names if n not in RECIPES]
+        if unknown or not names:
+            print(f"neso experiment: unknown recipe(s) {unknown}; known: {sorted(RECIPES)}")
+            return 2
+        config = replace(config, recipes=names)
     if args.omega_o is not None:
         config = replace(config, omega_o_rps=args.omega_o)
     if args.epochs is not None:
         config = replace(config, epochs=args.epochs)
     run_ = run_paper(config)
-    print()
-    print(format_tables(run_.results, run_.details))
-    print()
-    print(format_comparisons(run_.results))
+    for name, rec in run_.by_recipe.items():
+        print()
+        print(format_recipe_header(name, rec["details"]))
+        print()
+        print(format_tables(rec["results"], rec["details"]))
+        print()
+        print(format_comparisons(rec["results"]))
     print(f"\n{args.trials} trials per method; total {run_.seconds:.1f} s wall")
     if args.json:
         args.json.write_text(json.dumps(results_json(run_, args.trials), indent=2))
@@ -42,12 +56,10 @@ def run(args) -> int:
     if args.details:
         args.details.write_text(json.dumps(run_.details, indent=2))
     if args.networks_out:
-        from neso.netfile import save_network
+        from sim.experiments import save_networks
 
-        args.networks_out.mkdir(parents=True, exist_ok=True)
-        for stem, net in run_.networks.items():
-            save_network(args.networks_out / f"{stem}.safetensors", net)
-            print(f"network: {args.networks_out / stem}.safetensors")
+        for path in save_networks(run_, args.networks_out):
+            print(f"network: {path}")
     if args.plots:
         from cli.plots import write_plots
 

@@ -1,6 +1,7 @@
 """``neso train``: ask a vehicle's trainer to train on recordings, wait for the result, optionally promote.
 
-    neso train [FILE.rrd ...] [--label tdr|eso] [--lipschitz L_N] [--epochs N] [--no-offer] [--promote]
+    neso train [FILE.rrd ...] [--base] [--label eso|tdr|applied] [--lipschitz L_N] [--epochs N]
+               [--no-offer] [--force-offer] [--promote [--force]]
 
 Sends ``train`` to ``neso/<v>/cmd/trainer`` and waits for that job's ``done``/``failed`` event;
 with ``--promote`` (after a passed offer and ``--shadow`` seconds in shadow) sends ``promote`` to
@@ -19,13 +20,19 @@ from cli.busargs import add_bus_arguments, bus_from_args
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train a network on recordings (trainer service), offer it, promote it")
     p.add_argument("recordings", nargs="*", help=".rrd files (default: the trainer's newest recording)")
-    p.add_argument("--label", default="tdr", choices=("tdr", "eso"),
-                   help="tdr: f_N + Δf̂, warm start from the active network; eso: x̂_3 under the eso pathway")
-    p.add_argument("--lipschitz", type=float, default=None, help="L_N, normalised (default: active's / 1.0)")
+    p.add_argument("--base", action="store_const", const="base", default="tdr", dest="train_mode",
+                   help="train a base network from scratch on ESO-teacher flights (default recipe) instead of "
+                        "retraining the active network (TDR, with its recipe)")
+    p.add_argument("--label", default=None, choices=("eso", "tdr", "applied"),
+                   help="override the recipe's label (eso: x̂_3 under eso; tdr: f_N + Δf̂; applied: lag-consistent)")
+    p.add_argument("--lipschitz", type=float, default=None,
+                   help="L_N in the recipe's units (default: the largest the certificate allows for the gains flown)")
     p.add_argument("--epochs", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-offer", action="store_false", dest="offer", help="store in the registry only")
+    p.add_argument("--force-offer", action="store_true", help="offer even if predicted to fly worse")
     p.add_argument("--promote", action="store_true", help="promote the candidate once it has been in shadow")
+    p.add_argument("--force", action="store_true", help="with --promote: even if uncertified or predicted worse")
     p.add_argument("--shadow", type=float, default=2.0, help="seconds in shadow before --promote (default 2)")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the job")
     add_bus_arguments(p)
@@ -39,8 +46,10 @@ def run(args) -> int:
     from runtime.schema import EventMsg, Keys, SchemaError
 
     keys = Keys(args.vehicle)
-    train_args = {"label": args.label, "epochs": args.epochs, "offer": args.offer, "seed": args.seed,
-                  "request": uuid.uuid4().hex}
+    train_args = {"mode": args.train_mode, "epochs": args.epochs, "offer": args.offer, "seed": args.seed,
+                  "force_offer": args.force_offer, "request": uuid.uuid4().hex}
+    if args.label is not None:
+        train_args["label"] = args.label
     if args.recordings:
         train_args["recordings"] = [os.path.abspath(r) for r in args.recordings]
     if args.lipschitz is not None:
@@ -87,7 +96,8 @@ def run(args) -> int:
             return 1
         if args.promote:
             time.sleep(args.shadow)
-            reply = command(session, keys, "estimator", "promote", {"request": uuid.uuid4().hex}, timeout_s=5.0)
+            reply = command(session, keys, "estimator", "promote", {"request": uuid.uuid4().hex, "force": args.force},
+                            timeout_s=5.0)
             print(f"estimator: {reply.message}")
             return 0 if reply.ok else 1
     return 0

@@ -1,15 +1,20 @@
-"""Training pairs from flight recordings, as the paper builds them (Sec. V-C, Experiment 3).
+"""Training pairs from flight recordings (paper Sec. V-C and Experiment 3, and this project's labels).
 
-Input: the network input ``z`` (5,) the estimator published with each estimate (the paper's
-``[p_z, v_z, T_{k−1}, φ, θ]``, see ``neso.features``). Label (z axis, m/s²), as
-``sim.experiments.teacher_dataset`` takes it from a flight log:
+A recording becomes a :class:`neso.learning.FlightSeries` — the samples the estimator saw: the
+recorded states, the thrust commanded at the sample before each (the setpoints), and the
+estimator's f̂ and pathway when it recorded them — and the pairs are made by the same functions
+the simulated pipeline uses: the inputs of a feature set (:mod:`neso.features`), built from the
+recorded state and thrust whatever network flew, and a label (:mod:`neso.learning`):
 
 - ``eso``: the ESO teacher, ``x̂_3`` = f̂ while the estimator's pathway was ``eso``;
-- ``tdr``: total disturbance reconstruction, ``f_N + Δf̂`` while it flew ``neural_eso``.
+- ``tdr``: total disturbance reconstruction, ``f_N + Δf̂`` while it flew ``neural_eso``;
+- ``applied``: the lag-consistent label from the smoothed measured acceleration and the applied
+  thrust (any pathway), with the thrust lag identified on the same recordings unless given.
 
-Samples are skipped while the estimator was not warm (its first ``skip_s`` after a (re)start:
-``warm_ticks`` periods), while the vehicle was on the ground (the simulator's truth says so,
-or the setpoint commanded no thrust), or under another pathway than the label needs.
+Samples are skipped while the vehicle was on the ground (the simulator's truth says so, or the
+setpoint commanded no thrust); for the ESO labels while the estimator was not warm (its first
+``skip_s`` after a (re)start) or flew another pathway than the label needs; for ``applied`` within
+``skip_s`` of the start of a stretch of consecutive samples (the smoothing's edges).
 """
 from __future__ import annotations
 
@@ -18,17 +23,18 @@ from pathlib import Path
 
 import numpy as np
 
+from neso.features import DEFAULT_FEATURE_SET, FeatureSet, ThrustLag, feature_set
+from neso.learning import LABEL_PATHWAYS, LABELS, FlightSeries, features, identify_thrust_lag, labels
 from recordings.reader import Recording, RecordingError, read_recording
-
-LABELS = ("eso", "tdr")
-LABEL_PATHWAYS = {"eso": ("eso",), "tdr": ("neural_eso",)}
 
 
 @dataclass(frozen=True)
 class TrainingSet:
-    z: np.ndarray  # (N, 5) the paper's network input, as EstimateMsg.z carries it
-    y_mps2: np.ndarray  # (N,) z-axis label, m/s²: "eso" → x̂_3; "tdr" → f_N + Δf̂
-    label: str  # "eso" | "tdr"
+    z: np.ndarray  # (N, n) the feature set's inputs
+    y_mps2: np.ndarray  # (N,) z-axis label, m/s²
+    label: str  # one of neso.learning.LABELS
+    feature_set: str  # "name@version"
+    thrust_lag: ThrustLag  # the applied-thrust model the inputs and labels were made with
     recordings: tuple[str, ...]  # the files it came from
     vehicle: str
 
@@ -47,70 +53,157 @@ class Selection:
 
 
 def _last_by_seq(seqs: np.ndarray) -> np.ndarray:
-    """Indices of the last row of every run of one ``seq`` (a re-sent sample is answered again,
-    right after the first answer); rows stay in publication order."""
+    """Indices of the last row of every ``seq`` (a re-sent sample is answered again); sorted by seq."""
     if len(seqs) == 0:
         return np.zeros(0, dtype=int)
-    return np.flatnonzero(np.append(seqs[1:] != seqs[:-1], True))
+    order = np.argsort(seqs, kind="stable")
+    s = seqs[order]
+    return order[np.append(s[1:] != s[:-1], True)]
 
 
-def select(rec: Recording, label: str, *, skip_s: float = 0.5, vehicle: str | None = None) -> Selection:
+def _by_seq(channel, names: list[str]) -> tuple[np.ndarray, dict[str, object]]:
+    if len(channel) == 0:
+        return np.zeros(0, dtype=np.int64), {}
+    seq = np.asarray(channel.columns["seq"], dtype=np.int64)
+    rows = _last_by_seq(seq)
+    out = {}
+    for n in names:
+        col = channel.columns[n]
+        out[n] = np.asarray(col)[rows] if not isinstance(col, list) else np.array(col, dtype=object)[rows]
+    return seq[rows], out
+
+
+def flight_series(rec: Recording, vehicle: str | None = None) -> tuple[FlightSeries, np.ndarray, dict]:
+    """The recording's samples as the estimator saw them: (series, seq (N,), extras) where extras
+    holds ``warm_ticks`` (N,; −1 without an estimate) and ``on_ground`` (N,) bool."""
+    seq, st = _by_seq(rec.channel("state", vehicle), ["t_s", "pos_enu_m", "vel_enu_mps", "roll_rad", "pitch_rad"])
+    if len(seq) == 0:
+        raise RecordingError(f"{rec.path}: no states recorded")
+    sp_seq, sp = _by_seq(rec.channel("setpoint", vehicle), ["thrust_n"])
+    est_seq, est = _by_seq(rec.channel("estimate", vehicle), ["f_hat_mps2", "pathway", "warm_ticks"])
+    tr_seq, tr = _by_seq(rec.channel("truth", vehicle), ["on_ground"])
+    thrust_by_seq = dict(zip(sp_seq.tolist(), np.asarray(sp.get("thrust_n", []), dtype=float).tolist()))
+    thrust_prev = np.empty(len(seq))
+    last = next(iter(thrust_by_seq.values()), 0.0)
+    for i, s in enumerate(seq.tolist()):  # the setpoint that acted over the period before the sample
+        last = thrust_by_seq.get(s - 1, last)
+        thrust_prev[i] = last
+    f_hat = np.full((len(seq), 3), np.nan)
+    pathway = np.full(len(seq), None, dtype=object)
+    warm = np.full(len(seq), -1, dtype=np.int64)
+    if len(est_seq):
+        pos = np.searchsorted(est_seq, seq)
+        hit = (pos < len(est_seq)) & (est_seq[np.minimum(pos, len(est_seq) - 1)] == seq)
+        f_hat[hit] = np.asarray(est["f_hat_mps2"])[pos[hit]]
+        pathway[hit] = est["pathway"][pos[hit]]
+        warm[hit] = np.asarray(est["warm_ticks"])[pos[hit]]
+    on_ground = np.zeros(len(seq), dtype=bool)
+    if len(tr_seq):
+        ground = dict(zip(tr_seq.tolist(), np.asarray(tr["on_ground"]).astype(bool).tolist()))
+        on_ground |= np.array([ground.get(s, False) for s in seq.tolist()])
+    if thrust_by_seq:
+        on_ground |= np.array([thrust_by_seq.get(s, 1.0) <= 0 for s in seq.tolist()])
+    series = FlightSeries(t_s=np.asarray(st["t_s"], dtype=float), pos_enu_m=np.asarray(st["pos_enu_m"], dtype=float),
+                          vel_enu_mps=np.asarray(st["vel_enu_mps"], dtype=float),
+                          roll_rad=np.asarray(st["roll_rad"], dtype=float),
+                          pitch_rad=np.asarray(st["pitch_rad"], dtype=float), thrust_prev_n=thrust_prev,
+                          f_hat_mps2=f_hat, pathway=pathway)
+    return series, seq, {"warm_ticks": warm, "on_ground": on_ground}
+
+
+def _stretches(seq: np.ndarray) -> list[slice]:
+    """Runs of consecutive sample numbers (a restarted source or dropped samples break them)."""
+    if len(seq) == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(seq) != 1) + 1
+    bounds = [0, *cuts.tolist(), len(seq)]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _sub(series: FlightSeries, part: slice) -> FlightSeries:
+    return FlightSeries(series.t_s[part], series.pos_enu_m[part], series.vel_enu_mps[part], series.roll_rad[part],
+                        series.pitch_rad[part], series.thrust_prev_n[part], series.f_hat_mps2[part],
+                        None if series.pathway is None else series.pathway[part])
+
+
+def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip_s: float = 0.5,
+           vehicle: str | None = None) -> Selection:
     """The training pairs of one recording (see the module docstring for the rules)."""
     if label not in LABELS:
         raise ValueError(f"label must be one of {LABELS}, got {label!r}")
-    est = rec.channel("estimate", vehicle)
-    if len(est) == 0:
-        return Selection(np.zeros((0, 5)), np.zeros(0), 0, {"no estimates recorded": 0})
-    keep_rows = _last_by_seq(np.asarray(est.columns["seq"], dtype=np.int64))
-    seq = np.asarray(est.columns["seq"], dtype=np.int64)[keep_rows]
-    t = np.asarray(est.columns["t_s"])[keep_rows]
-    z = np.asarray(est.columns["z"])[keep_rows]
-    warm = np.asarray(est.columns["warm_ticks"])[keep_rows]
-    pathway = np.array(est.columns["pathway"], dtype=object)[keep_rows]
-    y = (np.asarray(est.columns["f_hat_mps2"])[keep_rows, 2] if label == "eso" else
-         np.asarray(est.columns["f_n_mps2"])[keep_rows, 2] + np.asarray(est.columns["delta_f_hat_mps2"])[keep_rows, 2])
-    dt = float(np.median(np.diff(t))) if len(t) > 1 and np.any(np.diff(t) > 0) else 0.02
-    dt = dt if dt > 0 else 0.02
-    ok_warm = warm * dt >= skip_s
-    ok_pathway = np.isin(pathway, LABEL_PATHWAYS[label])
-    on_ground = np.zeros(len(seq), dtype=bool)
-    truth, setpoint = rec.channel("truth", vehicle), rec.channel("setpoint", vehicle)
-    if len(truth):
-        ground = dict(zip(np.asarray(truth.columns["seq"], dtype=np.int64), np.asarray(truth.columns["on_ground"]) > 0.5))
-        on_ground |= np.array([ground.get(s, False) for s in seq])
-    if len(setpoint):
-        idle = dict(zip(np.asarray(setpoint.columns["seq"], dtype=np.int64), np.asarray(setpoint.columns["thrust_n"]) <= 0))
-        on_ground |= np.array([idle.get(s, False) for s in seq])
-    keep = ok_warm & ok_pathway & ~on_ground
-    dropped = {"estimator not warm": int(np.sum(~ok_warm)),
-               f"pathway not {'/'.join(LABEL_PATHWAYS[label])}": int(np.sum(ok_warm & ~ok_pathway)),
-               "on the ground": int(np.sum(ok_warm & ok_pathway & on_ground))}
+    try:
+        series, seq, extra = flight_series(rec, vehicle)
+    except RecordingError:
+        return Selection(np.zeros((0, fset.size)), np.zeros(0), 0, {"no states recorded": 0})
+    dt = series.dt_s
+    zs, ys, masks = [], [], []
+    for part in _stretches(seq):  # labels are smoothed along a stretch, never across a gap
+        sub = _sub(series, part)
+        zs.append(features(sub, fset, lag))
+        ys.append(labels(sub, label, lag))
+        masks.append(sub.t_s >= sub.t_s[0] + skip_s)
+    z, y, settled = np.concatenate(zs), np.concatenate(ys), np.concatenate(masks)
+    needs = LABEL_PATHWAYS[label]
+    if needs is None:  # a label made from measurements: its smoothing needs settled edges
+        ok_warm, ok_pathway, why = settled, np.ones(len(seq), dtype=bool), "start of a stretch"
+    else:
+        ok_warm, ok_pathway, why = extra["warm_ticks"] * dt >= skip_s, np.isin(series.pathway, needs), "estimator not warm"
+    keep = ok_warm & ok_pathway & ~extra["on_ground"] & np.isfinite(y)
+    dropped = {why: int(np.sum(~ok_warm)),
+               f"pathway not {'/'.join(needs or ())}": int(np.sum(ok_warm & ~ok_pathway)),
+               "on the ground": int(np.sum(ok_warm & ok_pathway & extra["on_ground"]))}
     return Selection(z[keep], y[keep], len(seq), dropped)
 
 
-def load_training_set(paths, label: str, *, skip_s: float = 0.5) -> TrainingSet:
+def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATURE_SET,
+                      lag: ThrustLag | None = None, skip_s: float = 0.5) -> TrainingSet:
     """Training pairs from one or more ``.rrd`` files (a path or a list of them) of one vehicle.
-    Raises :class:`RecordingError` naming the file and the reasons when a file gives no usable
-    sample, or when the files record different vehicles."""
+    ``lag``: the applied-thrust model (None: identified on these recordings when the label or the
+    inputs need it). Raises :class:`RecordingError` naming the file and the reasons when a file gives
+    no usable sample, or when the files record different vehicles."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [str(p) for p in paths]
     if not paths:
         raise ValueError("no recordings given")
-    zs, ys, vehicles = [], [], set()
-    for path in paths:
-        rec = read_recording(path)
-        vehicles.add(rec.vehicle)
-        sel = select(rec, label, skip_s=skip_s)
-        if len(sel.y_mps2) == 0:
-            reasons = ", ".join(f"{n} {why}" for why, n in sel.dropped.items() if n) or "no estimates recorded"
-            raise RecordingError(f"{path}: no usable {label!r} samples out of {sel.estimates} estimates ({reasons})")
-        zs.append(sel.z)
-        ys.append(sel.y_mps2)
+    fset = feature_set(feature_set_key)
+    recs = [read_recording(p) for p in paths]
+    vehicles = {r.vehicle for r in recs}
     if len(vehicles) != 1:
         raise RecordingError(f"recordings of different vehicles {sorted(vehicles)}: train one vehicle at a time")
+    if lag is None:
+        lag = ThrustLag()
+        if label == "applied" or fset.uses_applied_thrust:
+            lag = identify_thrust_lag(_airborne_series(recs))[0]
+    zs, ys = [], []
+    for path, rec in zip(paths, recs):
+        sel = select(rec, label, fset, lag, skip_s=skip_s)
+        if len(sel.y_mps2) == 0:
+            reasons = ", ".join(f"{n} {why}" for why, n in sel.dropped.items() if n) or "no estimates recorded"
+            raise RecordingError(f"{path}: no usable {label!r} samples out of {sel.estimates} samples ({reasons})")
+        zs.append(sel.z)
+        ys.append(sel.y_mps2)
     z = np.ascontiguousarray(np.concatenate(zs), dtype=float)
     y = np.ascontiguousarray(np.concatenate(ys), dtype=float)
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(y))):
         raise RecordingError(f"non-finite values in the training pairs from {paths}")
-    return TrainingSet(z=z, y_mps2=y, label=label, recordings=tuple(paths), vehicle=vehicles.pop())
+    return TrainingSet(z=z, y_mps2=y, label=label, feature_set=fset.key, thrust_lag=lag, recordings=tuple(paths),
+                       vehicle=vehicles.pop())
+
+
+def _airborne_series(recs: list[Recording]) -> list[FlightSeries]:
+    """The airborne stretches of the recordings (for identifying the thrust response)."""
+    out = []
+    for rec in recs:
+        try:
+            series, seq, extra = flight_series(rec)
+        except RecordingError:
+            continue
+        for part in _stretches(seq):
+            idx = np.arange(part.start, part.stop)
+            air = idx[~extra["on_ground"][idx]]
+            if len(air) > 50:
+                out.append(_sub(series, slice(air[0], air[-1] + 1)))
+    if not out:
+        raise RecordingError("no airborne stretch of at least 1 s to identify the thrust response on")
+    return out

@@ -166,8 +166,11 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
     network, source = load_flown_network(config.network)
     choice = NetworkChoice(network, source, config.network_dir)
     core = EstimatorCore(config, network, choice)
-    bound = change.lipschitz_bound if change.lipschitz_bound is not None else recorded.get("lipschitz_bound")
-    if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound):
+    flown_ids = {m.network_id for m in flown.values()}
+    bound = change.lipschitz_bound
+    if bound is None and network is not None and flown_ids == {core.network_id}:
+        bound = recorded.get("lipschitz_bound")  # the recorded L_N, when the recording flew this network
+    if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound_physical()):
         refusal = choice.refusal(float(bound))
         if refusal:
             raise ValueError(refusal)

@@ -1,9 +1,12 @@
 """The paper's Section V in simulation, from nothing: teacher data → base network → Exp. 1, 2,
-the L_N ablation, Exp. 3 with Total Disturbance Retraining.
+the L_N ablation, Exp. 3 with Total Disturbance Retraining — for one or more recipes side by side.
 
-Pure orchestration over :mod:`sim.runner` and :mod:`neso`; flights run in a process pool
-(one worker per core) and every flight is seeded, so a run is reproducible. Results come
-back in the shape ``neso experiment paper --json`` writes (see :func:`results_json`).
+A recipe (:mod:`neso.learning`) decides what the networks are: inputs, labels, bound and units,
+TDR normalisation. The methods without a network (``pd``, ``pd_eso``) and the ESO-teacher
+flights do not depend on it and are flown once; every recipe trains its own networks on the same
+teacher data and flies the same seeds. Flights run in a process pool (one worker per core) and
+every flight is seeded, so a run is reproducible. Results come back in the shape
+``neso experiment paper --json`` writes (see :func:`results_json`).
 """
 from __future__ import annotations
 
@@ -15,10 +18,13 @@ from multiprocessing import get_context
 
 import numpy as np
 
+from neso.certificate import largest_certified_lipschitz
 from neso.control import ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
-from neso.features import acceleration_labels
+from neso.features import ThrustLag, acceleration_labels, feature_set
+from neso.learning import (DEFAULT_RECIPE, RECIPES, FlightSeries, Recipe, features, identify_thrust_lag, labels,
+                           recipe_bound)
 from neso.methods import build_estimator
 from neso.metrics import rmse_m, settling_time_s, steady_state_abs_error_m, summarise
 from neso.network import LipschitzMLP
@@ -29,16 +35,18 @@ from sim.scenarios import make_scenario
 LANDING_METHODS = ("pd", "pd_nn", "pd_eso", "neural_eso")
 OOD_METHODS = ("pd", "pd_nn", "pd_eso", "neural_eso")
 LEMNISCATE_METHODS = ("pd", "pd_nn", "pd_eso", "neural_observer", "neural_eso", "neural_eso_tdr")
+SHARED_METHODS = ("pd", "pd_eso")  # no network: flown once for every recipe
+ABLATION_FACTORS = (0.2, 0.5, 1.0, 2.0)  # × the recipe's base bound (the paper's L_N ∈ {0.2, 0.5, 1, 2})
 
 
 @dataclass(frozen=True)
 class PaperConfig:
-    """Everything the pipeline chooses. ``base_lipschitz`` and ``lipschitz_values`` are bounds
-    on the *normalised* network (z-scored inputs and labels), as the paper trains them."""
+    """Everything the pipeline chooses. ``recipes``: the recipes flown side by side (the first is
+    the one ``results`` reports at the top level). The L_N ablation flies each recipe's base bound
+    times :data:`ABLATION_FACTORS`."""
 
     trials: int = 5
-    base_lipschitz: float = 1.0
-    lipschitz_values: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0)
+    recipes: tuple[str, ...] = (DEFAULT_RECIPE, "paper")
     omega_o_rps: float = 15.0
     control: ControlConfig = field(default_factory=ControlConfig)
     teacher_flights: int = 3
@@ -55,6 +63,10 @@ class PaperConfig:
 
     def estimator_config(self) -> NeuralEsoConfig:
         return NeuralEsoConfig(eso=EsoConfig(omega_o_rps=self.omega_o_rps, dt_s=self.control.dt_s))
+
+    def base_bound(self, recipe: Recipe) -> float:
+        """The recipe's bound in its units (the certified one for these gains when it asks for it)."""
+        return recipe_bound(recipe, self.control.kp[2], self.control.kd[2], self.omega_o_rps)
 
 
 @dataclass(frozen=True)
@@ -103,37 +115,47 @@ class _Pool:
 
 
 # -- datasets --------------------------------------------------------------------------
-def teacher_dataset(logs: list[FlightLog], *, skip_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """(z (N, 5), y (N,)) with y = f̂_z of flights under an observer pathway (ESO teacher or TDR)."""
+def _late(series: FlightSeries, skip_s: float) -> np.ndarray:
+    return series.t_s >= series.t_s[0] + skip_s
+
+
+def training_pairs(logs: list[FlightLog], recipe_label: str, fset_key: str, lag: ThrustLag, *,
+                   skip_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """(z (N, n), y (N,)) of flights: the feature set's inputs and the label ``recipe_label``
+    (:func:`neso.learning.labels`), the first ``skip_s`` of each flight left out (observer warm-up)."""
+    fset = feature_set(fset_key)
     zs, ys = [], []
     for log in logs:
-        keep = np.isfinite(log.t_s) & (log.t_s >= log.t_s[0] + skip_s)
-        zs.append(log.z[keep])
-        ys.append(log.f_hat[keep, 2])
+        series = log.series()
+        keep = _late(series, skip_s)
+        zs.append(features(series, fset, lag)[keep])
+        ys.append(labels(series, recipe_label, lag)[keep])
     return np.concatenate(zs), np.concatenate(ys)
 
 
-def acceleration_dataset(logs: list[FlightLog], dt_s: float, *, skip_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def acceleration_dataset(logs: list[FlightLog], fset_key: str, lag: ThrustLag, dt_s: float, *,
+                         skip_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """(z, y) with y = measured − commanded z acceleration (the PD+NN baseline's labels)."""
+    fset = feature_set(fset_key)
     zs, ys = [], []
     for log in logs:
+        series = log.series()
         keep = np.isfinite(log.t_s)
         y = acceleration_labels(log.vel_meas_mps[keep, 2], log.acc_cmd_mps2[keep, 2], dt_s)
-        z = log.z[keep][:-1]
-        late = log.t_s[keep][:-1] >= log.t_s[0] + skip_s
-        zs.append(z[late])
-        ys.append(y[late])
+        zs.append(features(series, fset, lag)[:-1][_late(series, skip_s)[:-1]])
+        ys.append(y[_late(series, skip_s)[:-1]])
     return np.concatenate(zs), np.concatenate(ys)
 
 
-def train(z: np.ndarray, y: np.ndarray, *, bound: float, config: PaperConfig, name: str, init=None, source: str = ""):
+def train(z: np.ndarray, y: np.ndarray, *, bound: float, units: str, config: PaperConfig, name: str,
+          fset_key: str, lag: ThrustLag, recipe_name: str, init=None, scalers: str = "init", source: str = ""):
     from neso.training import train_lipschitz_mlp
 
-    result = train_lipschitz_mlp(
-        z, y, lipschitz_bound=bound, epochs=config.epochs, seed=config.seed, init=init,
-        metadata={"id": name, "training_data": source},
+    return train_lipschitz_mlp(
+        z, y, lipschitz_bound=bound, bound_units=units, epochs=config.epochs, seed=config.seed, init=init,
+        scalers=scalers, metadata={"id": name, "training_data": source, "feature_set": fset_key, "recipe": recipe_name,
+                                   "thrust_lag_s": repr(lag.time_constant_s), "thrust_delay_s": repr(lag.delay_s)},
     )
-    return result
 
 
 # -- metrics ---------------------------------------------------------------------------
@@ -157,114 +179,173 @@ def lemniscate_rmse_cm(log: FlightLog, config: PaperConfig) -> float | None:
 # -- the pipeline -----------------------------------------------------------------------
 @dataclass
 class PaperRun:
-    results: dict
+    results: dict  # the first recipe's results (the documented shape)
     details: dict
-    logs: dict  # experiment → method → [FlightLog] (for plots)
+    logs: dict  # experiment → method → [FlightLog] (for plots), first recipe
     seconds: float
-    networks: dict = field(default_factory=dict)  # file stem → LipschitzMLP (base-L<b>, acceleration, tdr)
+    networks: dict = field(default_factory=dict)  # file stem → LipschitzMLP, first recipe
+    by_recipe: dict = field(default_factory=dict)  # recipe → {"results", "details", "logs", "networks"}
+
+
+class _Flights:
+    """Task factory and timer of one pipeline run."""
+
+    def __init__(self, config: PaperConfig, pool: _Pool, log) -> None:
+        self.config, self.pool, self.log = config, pool, log
+        self.est_cfg = config.estimator_config()
+        self.seeds = [config.seed * 1000 + 1 + i for i in range(config.trials)]
+        self.timing: dict[str, float] = {}
+        self._since = time.perf_counter()
+
+    def tasks(self, scenario, method, networks, trajectory, seeds=None) -> list[FlightTask]:
+        return [FlightTask(scenario, method, networks, s, trajectory, self.est_cfg, self.config.control)
+                for s in (self.seeds if seeds is None else seeds)]
+
+    def tick(self, label: str) -> None:
+        now = time.perf_counter()
+        self.timing[label] = round(now - self._since, 3)
+        self.log(f"  {label}: {self.timing[label]:.1f} s")
+        self._since = now
 
 
 def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
     started = time.perf_counter()
     pool = _Pool(config.workers)
-    est_cfg = config.estimator_config()
-    seeds = [config.seed * 1000 + 1 + i for i in range(config.trials)]
-    details: dict = {"networks": {}, "timing_s": {}, "settling_time_s": {}}
-    logs: dict = {}
-
-    def tasks(scenario, method, networks, trajectory, trial_seeds=seeds):
-        return [FlightTask(scenario, method, networks, s, trajectory, est_cfg, config.control) for s in trial_seeds]
-
-    def tick(label, since):
-        details["timing_s"][label] = round(time.perf_counter() - since, 3)
-        log(f"  {label}: {details['timing_s'][label]:.1f} s")
-        return time.perf_counter()
-
+    flights = _Flights(config, pool, log)
     try:
-        t0 = time.perf_counter()
         log("collecting ESO-teacher data (pd_eso, nominal landing)")
         teacher_seeds = [config.seed * 1000 + 500 + i for i in range(config.teacher_flights)]
-        teacher_logs = pool.map(tasks("nominal_landing", "pd_eso", {}, config.landing, teacher_seeds))
-        z_t, y_t = teacher_dataset(teacher_logs)
-        z_a, y_a = acceleration_dataset(teacher_logs, config.control.dt_s)
-        t0 = tick("teacher_data", t0)
-
-        log(f"training networks on {len(y_t)} samples: L_N ∈ {config.lipschitz_values} (ESO teacher), acceleration (PD+NN)")
-        bounds = sorted(set(config.lipschitz_values) | {config.base_lipschitz})
-        nets: dict[float, LipschitzMLP] = {}
-        for bound in bounds:
-            res = train(z_t, y_t, bound=bound, config=config, name=f"base-L{bound}", source="eso_teacher:nominal_landing")
-            nets[bound] = res.network
-            details["networks"][f"base_L{bound}"] = _network_details(res)
-        acc_res = train(z_a, y_a, bound=config.base_lipschitz, config=config, name="acceleration", source="acceleration:nominal_landing")
-        details["networks"]["acceleration"] = _network_details(acc_res)
-        base = {"base": nets[config.base_lipschitz], "acceleration": acc_res.network}
-        t0 = tick("training", t0)
-
-        results: dict = {}
-        log("experiment 1: nominal landing")
-        results["nominal_landing"], logs["nominal_landing"] = _landing_experiment(
-            pool, tasks, "nominal_landing", LANDING_METHODS, base, config, details)
-        t0 = tick("nominal_landing", t0)
-        log("experiment 2: OOD slope")
-        results["ood_slope"], logs["ood_slope"] = _landing_experiment(
-            pool, tasks, "ood_slope", OOD_METHODS, base, config, details)
-        t0 = tick("ood_slope", t0)
-
-        log("L_N ablation")
-        ablation = {"metric": "steady_state_abs_z_error_cm", "nominal": {}, "ood": {}}
-        for key, scenario in (("nominal", "nominal_landing"), ("ood", "ood_slope")):
-            others = [b for b in config.lipschitz_values if b != config.base_lipschitz]
-            groups = pool.map_groups([tasks(scenario, "neural_eso", {"base": nets[b]}, config.landing) for b in others])
-            for bound, flights in zip(others, groups):
-                ablation[key][str(bound)] = summarise([landing_metrics(f, config)[0] for f in flights])
-            if config.base_lipschitz in config.lipschitz_values:
-                ablation[key][str(config.base_lipschitz)] = results[scenario]["methods"]["neural_eso"]
-            ablation[key] = {str(b): ablation[key][str(b)] for b in config.lipschitz_values}
-        results["lipschitz_ablation"] = ablation
-        t0 = tick("lipschitz_ablation", t0)
-
-        log("experiment 3: lemniscate near ground, TDR on 30 s of OOD data under Neural-ESO")
-        tdr_traj = replace(config.lemniscate, cycles=config.tdr_cycles)
-        (tdr_log,) = pool.map(tasks("lemniscate_near_ground", "neural_eso", base, tdr_traj, [config.seed * 1000 + 900]))
-        z_r, y_r = teacher_dataset([tdr_log], skip_s=tdr_traj.cycle_start_s)
-        tdr_res = train(z_r, y_r, bound=config.base_lipschitz, config=config, name="tdr", init=base["base"],
-                        source="tdr:lemniscate_near_ground")
-        details["networks"]["tdr"] = _network_details(tdr_res)
-        details["tdr_samples"] = int(len(y_r))
-        nets3 = dict(base, tdr=tdr_res.network)
-        groups = pool.map_groups([tasks("lemniscate_near_ground", m, nets3, config.lemniscate) for m in LEMNISCATE_METHODS])
-        lem = {"metric": "z_rmse_cm", "methods": {}}
-        logs["lemniscate_near_ground"] = dict(zip(LEMNISCATE_METHODS, groups))
-        for method, flights in logs["lemniscate_near_ground"].items():
-            lem["methods"][method] = summarise([lemniscate_rmse_cm(f, config) for f in flights])
-        results["lemniscate_near_ground"] = lem
-        tick("lemniscate_near_ground", t0)
+        teacher_logs = pool.map(flights.tasks("nominal_landing", "pd_eso", {}, config.landing, teacher_seeds))
+        lag, lag_var = identify_thrust_lag([t.series() for t in teacher_logs])
+        log(f"  thrust response identified on the teacher flights: lag {lag.time_constant_s * 1e3:.1f} ms, "
+            f"delay {lag.delay_s * 1e3:.1f} ms")
+        shared = _shared_flights(flights)
+        flights.tick("teacher_data_and_baselines")
+        by_recipe = {}
+        for name in config.recipes:
+            recipe = RECIPES[name]
+            log(f"recipe {name}: {recipe.description}")
+            by_recipe[name] = _run_recipe(recipe, flights, teacher_logs, shared, lag)
+            by_recipe[name]["details"]["thrust_lag"] = {"time_constant_s": lag.time_constant_s, "delay_s": lag.delay_s,
+                                                        "label_variance_mps4": lag_var}
     finally:
         pool.close()
-    seconds = time.perf_counter() - started
-    networks = {f"base-L{b:g}": net for b, net in nets.items()}
+    first = by_recipe[config.recipes[0]]
+    details = dict(first["details"], timing_s=flights.timing)
+    return PaperRun(results=first["results"], details=details, logs=first["logs"],
+                    seconds=time.perf_counter() - started, networks=first["networks"], by_recipe=by_recipe)
+
+
+def _shared_flights(flights: _Flights) -> dict:
+    """scenario → method → logs of the methods without a network."""
+    c = flights.config
+    plan = [("nominal_landing", c.landing), ("ood_slope", c.landing), ("lemniscate_near_ground", c.lemniscate)]
+    groups = flights.pool.map_groups([flights.tasks(s, m, {}, traj) for s, traj in plan for m in SHARED_METHODS])
+    out: dict = {}
+    for (scenario, _), i in zip(plan, range(0, len(groups), len(SHARED_METHODS))):
+        out[scenario] = dict(zip(SHARED_METHODS, groups[i:i + len(SHARED_METHODS)]))
+    return out
+
+
+def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog], shared: dict, lag: ThrustLag) -> dict:
+    config, pool = flights.config, flights.pool
+    bound = config.base_bound(recipe)
+    details: dict = {"recipe": recipe.name, "feature_set": recipe.feature_set, "bound_units": recipe.bound_units,
+                     "base_bound": bound, "networks": {}, "settling_time_s": {}}
+    fs = recipe.feature_set
+    z_t, y_t = training_pairs(teacher_logs, recipe.base_label, fs, lag)
+    z_a, y_a = acceleration_dataset(teacher_logs, fs, lag, config.control.dt_s)
+    flights.log(f"  training on {len(y_t)} samples: bounds {[round(f * bound, 4) for f in ABLATION_FACTORS]} "
+                f"({recipe.bound_units}), acceleration (PD+NN)")
+    nets: dict[float, LipschitzMLP] = {}
+    paper = recipe.bound_units == "normalised"
+    for factor in ABLATION_FACTORS:
+        name = f"base-L{factor * bound}" if paper else ("base" if factor == 1.0 else f"base-x{factor:g}")
+        res = train(z_t, y_t, bound=factor * bound, units=recipe.bound_units, config=config,
+                    name=name, fset_key=fs, lag=lag, recipe_name=recipe.name,
+                    source=f"{recipe.base_label}_teacher:nominal_landing")
+        nets[factor] = res.network
+        details["networks"][f"base_x{factor:g}"] = _network_details(res, config)
+    acc_res = train(z_a, y_a, bound=bound, units=recipe.bound_units, config=config,
+                    name=f"{recipe.name}-acceleration" if paper else "acceleration",
+                    fset_key=fs, lag=lag, recipe_name=recipe.name, source="acceleration:nominal_landing")
+    details["networks"]["acceleration"] = _network_details(acc_res, config)
+    base = {"base": nets[1.0], "acceleration": acc_res.network}
+    flights.tick(f"{recipe.name}: training")
+
+    results: dict = {}
+    logs: dict = {}
+    for scenario, methods in (("nominal_landing", LANDING_METHODS), ("ood_slope", OOD_METHODS)):
+        results[scenario], logs[scenario] = _landing_experiment(flights, scenario, methods, base, shared, details)
+    flights.tick(f"{recipe.name}: experiments 1-2")
+    results["lipschitz_ablation"] = _ablation(flights, nets, results, recipe, bound)
+    flights.tick(f"{recipe.name}: lipschitz_ablation")
+
+    tdr_traj = replace(config.lemniscate, cycles=config.tdr_cycles)
+    (tdr_log,) = pool.map(flights.tasks("lemniscate_near_ground", "neural_eso", base, tdr_traj,
+                                        [config.seed * 1000 + 900]))
+    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, fs, lag, skip_s=tdr_traj.cycle_start_s)
+    tdr_res = train(z_r, y_r, bound=bound, units=recipe.bound_units, config=config,
+                    name=f"{recipe.name}-tdr" if paper else "tdr",
+                    fset_key=fs, lag=lag, recipe_name=recipe.name, init=base["base"], scalers=recipe.tdr_scalers,
+                    source=f"{recipe.tdr_label}:lemniscate_near_ground")
+    details["networks"]["tdr"] = _network_details(tdr_res, config)
+    details["tdr_samples"] = int(len(y_r))
+    nets3 = dict(base, tdr=tdr_res.network)
+    own = [m for m in LEMNISCATE_METHODS if m not in SHARED_METHODS]
+    groups = pool.map_groups([flights.tasks("lemniscate_near_ground", m, nets3, config.lemniscate) for m in own])
+    logs["lemniscate_near_ground"] = {m: (shared["lemniscate_near_ground"][m] if m in SHARED_METHODS
+                                          else groups[own.index(m)]) for m in LEMNISCATE_METHODS}
+    results["lemniscate_near_ground"] = {"metric": "z_rmse_cm", "methods": {
+        m: summarise([lemniscate_rmse_cm(f, config) for f in fl]) for m, fl in logs["lemniscate_near_ground"].items()}}
+    flights.tick(f"{recipe.name}: lemniscate_near_ground")
+    networks = {_file_stem(n.metadata["id"]): n for n in nets.values()}
     networks.update(acceleration=acc_res.network, tdr=tdr_res.network)
-    return PaperRun(results=results, details=details, logs=logs, seconds=seconds, networks=networks)
+    return {"results": results, "details": details, "logs": logs, "networks": networks}
 
 
-def _landing_experiment(pool, tasks, scenario, methods, networks, config, details):
-    logs = dict(zip(methods, pool.map_groups([tasks(scenario, m, networks, config.landing) for m in methods])))
+def _landing_experiment(flights: _Flights, scenario, methods, networks, shared, details):
+    config = flights.config
+    own = [m for m in methods if m not in SHARED_METHODS]
+    groups = flights.pool.map_groups([flights.tasks(scenario, m, networks, config.landing) for m in own])
+    logs = {m: (shared[scenario][m] if m in SHARED_METHODS else groups[own.index(m)]) for m in methods}
     out = {"metric": "steady_state_abs_z_error_cm", "methods": {}}
     details["settling_time_s"][scenario] = {}
-    for method, flights in logs.items():
-        metrics = [landing_metrics(f, config) for f in flights]
+    for method, fl in logs.items():
+        metrics = [landing_metrics(f, config) for f in fl]
         out["methods"][method] = summarise([m[0] for m in metrics])
         details["settling_time_s"][scenario][method] = summarise([m[1] for m in metrics])
     return out, logs
 
 
-def _network_details(result) -> dict:
+def _ablation(flights: _Flights, nets: dict, results: dict, recipe: Recipe, bound: float) -> dict:
+    config = flights.config
+    out = {"metric": "steady_state_abs_z_error_cm", "units": recipe.bound_units, "nominal": {}, "ood": {}}
+    others = [f for f in ABLATION_FACTORS if f != 1.0]
+    for key, scenario in (("nominal", "nominal_landing"), ("ood", "ood_slope")):
+        groups = flights.pool.map_groups(
+            [flights.tasks(scenario, "neural_eso", {"base": nets[f]}, config.landing) for f in others])
+        row = {f: summarise([landing_metrics(fl, config)[0] for fl in g]) for f, g in zip(others, groups)}
+        row[1.0] = results[scenario]["methods"]["neural_eso"]
+        out[key] = {_bound_key(f * bound): row[f] for f in ABLATION_FACTORS}
+    return out
+
+
+def _bound_key(value: float) -> str:
+    return f"{value:.4g}" if value != round(value, 1) else str(round(value, 1))
+
+
+def _network_details(result, config: PaperConfig) -> dict:
     net = result.network
+    cert = largest_certified_lipschitz(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
     return {
-        "lipschitz_bound_normalised": net.lipschitz_bound,
+        "bound": net.lipschitz_bound,
+        "bound_units": net.bound_units,
         "certified_lipschitz_normalised": net.certified_lipschitz_normalised(),
         "certified_lipschitz_physical": net.certified_lipschitz_physical(),
+        "certificate_holds": net.certified_lipschitz_physical() < cert,
+        "largest_certified_physical": cert,
+        "feature_set": net.feature_set.key,
         "val_loss": result.val_loss,
         "n_train": result.n_train,
         "n_val": result.n_val,
@@ -272,5 +353,31 @@ def _network_details(result) -> dict:
 
 
 def results_json(run: PaperRun, trials: int) -> dict:
-    """Exactly the shape the issue specifies for ``--json``."""
-    return {"experiments": run.results, "seconds": run.seconds, "trials": trials}
+    """The documented shape (``experiments`` for the first recipe), plus every recipe side by side."""
+    return {"experiments": run.results, "seconds": run.seconds, "trials": trials,
+            "recipe": next(iter(run.by_recipe), None),
+            "recipes": {name: {"experiments": r["results"], "details": r["details"]} for name, r in run.by_recipe.items()}}
+
+
+def _file_stem(net_id: str) -> str:
+    """``base-L1.0`` → ``base-L1`` (the paper's file names), other ids as they are."""
+    head, _, bound = net_id.partition("-L")
+    return f"{head}-L{float(bound):g}" if bound else net_id
+
+
+def save_networks(run: PaperRun, directory) -> list:
+    """Write every recipe's networks: the first recipe's into ``directory`` (``base``, ``base-x<f>``,
+    ``acceleration``, ``tdr``), the others into ``directory/<recipe>/`` (the paper's as ``base-L<L_N>``)."""
+    from pathlib import Path
+
+    from neso.netfile import save_network
+
+    paths = []
+    for i, (name, rec) in enumerate(run.by_recipe.items()):
+        folder = Path(directory) if i == 0 else Path(directory) / name
+        folder.mkdir(parents=True, exist_ok=True)
+        for stem, net in rec["networks"].items():
+            path = folder / f"{stem}.safetensors"
+            save_network(path, net)
+            paths.append(path)
+    return paths

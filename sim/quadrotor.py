@@ -326,6 +326,16 @@ class QuadrotorSim:
             diverged=self._diverged,
         )
 
+    @property
+    def applied_thrust_nominal_n(self) -> float:
+        """The thrust the rotors are being driven to after the command's delay and lag, in the
+        controller's nominal Newtons (thrust_norm / 0.5 · 1.0 kg · g): what a perfect model of the
+        vehicle's thrust response would say is applied, before battery, ground effect and rotor
+        saturation (N)."""
+        full = self.config.params.max_thrust_n * self._battery(self.t_s)
+        tn = self._thrust_act_n / full if full > 0 else 0.0
+        return tn / NOMINAL_HOVER_THRUST_NORM * NOMINAL_MASS_KG * GRAVITY_MPS2
+
     # ------------------------------------------------------------------ internals
     def _level_ge_ratio(self, x: float, y: float, z: float, yaw_rad: float) -> float:
         """Total ground-effect ratio of the level vehicle at (x, y, z) with yaw ``yaw_rad``."""

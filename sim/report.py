@@ -31,6 +31,19 @@ def _table(title: str, rows: list[tuple[str, str, str]]) -> str:
     return "\n".join(lines)
 
 
+def format_recipe_header(name: str, details: dict) -> str:
+    """One line per recipe: which inputs, which bound, whether its networks are certified."""
+    nets = details.get("networks", {})
+    base = nets.get("base_x1", {})
+    tdr = nets.get("tdr", {})
+    cert = lambda n: ("certified" if n.get("certificate_holds") else "NOT certified") if n else "–"  # noqa: E731
+    return (f"=== recipe {name}: inputs {details.get('feature_set')}, bound {details.get('base_bound', float('nan')):.4g} "
+            f"({details.get('bound_units')}); base network {cert(base)} (physical L_N "
+            f"{base.get('certified_lipschitz_physical', float('nan')):.3g} vs largest certified "
+            f"{base.get('largest_certified_physical', float('nan')):.3g}), TDR network {cert(tdr)} "
+            f"({tdr.get('certified_lipschitz_physical', float('nan')):.3g}) ===")
+
+
 def format_tables(results: dict, details: dict | None = None) -> str:
     out = []
     for name, title in (
@@ -50,11 +63,13 @@ def format_tables(results: dict, details: dict | None = None) -> str:
             rows.append((method, cell, "—" if paper is None else f"{paper:.2f}"))
         out.append(_table(title, rows))
     if "lipschitz_ablation" in results:
-        rows = [("L_N (normalised)", "nominal", "OOD")]
+        rows = [(f"L_N ({results['lipschitz_ablation'].get('units', 'normalised')})", "nominal", "OOD")]
         abl = results["lipschitz_ablation"]
-        for bound in abl["nominal"]:
-            paper_n = PAPER_FIGURES_CM["lipschitz_ablation"]["nominal"].get(bound)
-            paper_o = PAPER_FIGURES_CM["lipschitz_ablation"]["ood"].get(bound)
+        paper_keys = list(PAPER_FIGURES_CM["lipschitz_ablation"]["nominal"])  # the same factors of the base bound
+        for i, bound in enumerate(abl["nominal"]):
+            key = paper_keys[i] if i < len(paper_keys) else bound
+            paper_n = PAPER_FIGURES_CM["lipschitz_ablation"]["nominal"].get(key)
+            paper_o = PAPER_FIGURES_CM["lipschitz_ablation"]["ood"].get(key)
             rows.append((
                 bound,
                 f"{_cell(abl['nominal'][bound])}  (paper {paper_n})",

@@ -19,8 +19,8 @@ import pytest
 from neso.rotations import world_from_body_zyx
 from runtime.client import get_params, set_params
 from runtime.probe import Probe
-from runtime.schema import TOPICS, HealthMsg, Keys, ParamStateMsg, SchemaError
-from tests.busutil import children_of, free_port, neso, peer, role_pid, session, stop
+from runtime.schema import TOPICS, EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError
+from tests.busutil import REPO, children_of, free_port, neso, peer, role_pid, session, stop
 
 PERIOD_S = 0.02
 KEYS = Keys("uav1")
@@ -42,7 +42,7 @@ class Flight:
         threading.Thread(target=self._pump, daemon=True).start()
         self._session_cm = session(peer(self.endpoint))
         self.s = self._session_cm.__enter__()
-        self.probe = Probe(self.s)
+        self.probe = Probe(self.s, topics=("state", "truth", "estimate", "setpoint", "reference", "network"))
         self.health: dict[str, HealthMsg] = {}
         self.param_states: list[ParamStateMsg] = []
         self.subs = [self.s.declare_subscriber(KEYS.every("health"), self._on_health),
@@ -95,8 +95,16 @@ def flight():
         f.close()
 
 
+def _bound(stem: str) -> float:
+    """The physical L_N a shipped network states (the estimator's lipschitz_bound unit)."""
+    from neso.netfile import load_network
+
+    return load_network(f"{REPO}/networks/{stem}.safetensors").lipschitz_bound_physical()
+
+
 def test_live_pathway_and_bound_changes_take_effect_within_one_period_bumplessly(flight):
-    for pathway, bound in (("eso", 1.0), ("neural_eso", 0.5)):
+    half = _bound("base-x0.5")
+    for pathway, bound in (("eso", _bound("base")), ("neural_eso", half)):
         before = flight.latest_seq()
         reply = set_params(flight.s, KEYS, "estimator", {"pathway": pathway, "lipschitz_bound": bound})
         acked = flight.latest_seq()
@@ -108,19 +116,55 @@ def test_live_pathway_and_bound_changes_take_effect_within_one_period_bumplessly
                      key=lambda m: m.seq)
         assert max_force_step_n(sps) <= 40.0 * PERIOD_S + 1e-6, "no step beyond the increment limit"
     state = flight.param_states[-1]
-    assert state.service == "estimator" and state.values["lipschitz_bound"] == 0.5 and "base-L0.5" in state.note
-    assert flight.probe.get("estimate")[-1].network_id.endswith("@L0.5")
+    assert state.service == "estimator" and state.values["lipschitz_bound"] == half and "base-x0.5" in state.note
+    assert flight.probe.get("estimate")[-1].network_id == f"base-x0.5@L{half:.4g}"
+
+
+def _neso_out(*args) -> tuple[int, str]:
+    proc = neso(*args)
+    out = stop(proc, timeout_s=15) if proc.wait(15) is None else proc.stdout.read()
+    return proc.returncode, out
 
 
 def test_params_cli_acknowledges_and_refuses_with_the_reason(flight):
-    ok = neso("params", "set", "estimator", "lipschitz_bound=1", "--connect", flight.endpoint)
-    out = stop(ok, timeout_s=15) if ok.wait(15) is None else ok.stdout.read()
-    assert ok.returncode == 0 and "accepted" in out, out
-    bad = neso("params", "set", "estimator", "lipschitz_bound=50", "--connect", flight.endpoint)
-    bad.wait(15)
-    out = bad.stdout.read()
-    assert bad.returncode == 1 and "refused" in out and "above" in out, out
-    assert get_params(flight.s, KEYS, "estimator").values["lipschitz_bound"] == 1.0
+    base = _bound("base")
+    code, out = _neso_out("params", "set", "estimator", f"lipschitz_bound={base!r}", "--connect", flight.endpoint)
+    assert code == 0 and "accepted" in out, out
+    code, out = _neso_out("params", "set", "estimator", "lipschitz_bound=50", "--connect", flight.endpoint)
+    assert code == 1 and "refused" in out and "above" in out, out
+    assert get_params(flight.s, KEYS, "estimator").values["lipschitz_bound"] == base
+
+
+def test_the_services_refuse_changes_outside_the_certificate_with_the_margin_unless_overridden(flight):
+    """L_N (estimator) and k_p (controller) are checked by the process that applies them; an override is
+    applied and leaves an event."""
+    events = []
+    subs = [flight.s.declare_subscriber(KEYS.event(svc), lambda smp: events.append(EventMsg.from_bytes(
+        smp.payload.to_bytes()))) for svc in ("estimator", "controller")]
+    try:
+        double = _bound("base-x2")
+        code, out = _neso_out("params", "set", "estimator", f"lipschitz_bound={double!r}", "--connect", flight.endpoint)
+        assert code == 1 and "certificate FAILS" in out and "margin -" in out and "override" in out, out
+        code, out = _neso_out("params", "set", "controller", "kd_z=0.5", "--connect", flight.endpoint)
+        assert code == 1 and "certificate FAILS" in out and "margin -" in out, out
+        assert get_params(flight.s, KEYS, "controller").values["kd_z"] == 6.0
+        code, out = _neso_out("params", "set", "controller", "kd_z=0.5", "override=true", "--connect", flight.endpoint)
+        assert code == 0 and "accepted" in out, out
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not any("by override" in e.text for e in events):
+            time.sleep(0.05)
+        assert any(e.service == "controller" and e.level == "warning" and "by override" in e.text and
+                   "certificate FAILS" in e.text for e in events), [e.text for e in events]
+        # the estimator hears the new gains and reports what flies no longer holds
+        net = flight.probe.wait_for("network", lambda m: m.certificate.get("kd") == 0.5, 5.0)
+        assert net.certificate["holds"] is False
+        code, out = _neso_out("params", "set", "controller", "kd_z=6", "--connect", flight.endpoint)
+        assert code == 0, out
+        net = flight.probe.wait_for("network", lambda m: m.certificate.get("kd") == 6.0, 5.0)
+        assert net.certificate["holds"] is True
+    finally:
+        for sub in subs:
+            sub.undeclare()
 
 
 def _malformed(valid: bytes, rng: random.Random) -> bytes:

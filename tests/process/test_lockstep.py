@@ -13,7 +13,7 @@ from sim.runner import fly
 from sim.scenarios import make_scenario
 from tests.busutil import REPO, free_port, neso, peer, session, stop
 
-NETWORK = f"{REPO}/networks/base-L1.safetensors"
+NETWORK = f"{REPO}/networks/base.safetensors"
 
 
 def test_lockstep_processes_reproduce_the_in_process_runner():

@@ -13,7 +13,8 @@ from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
 from neso.methods import METHODS, build_estimator
 from neso.trajectories import Landing
-from sim.experiments import FlightTask, run_flight, teacher_dataset
+from neso.features import DEFAULT_FEATURE_SET, ThrustLag
+from sim.experiments import FlightTask, run_flight, training_pairs
 from sim.runner import fly
 from sim.scenarios import make_scenario
 
@@ -42,8 +43,9 @@ def base_network():
     from neso.training import train_lipschitz_mlp
 
     logs = [_landing("pd_eso", 500 + i) for i in range(2)]
-    z, y = teacher_dataset(logs)
-    return train_lipschitz_mlp(z, y, lipschitz_bound=1.0, epochs=30).network
+    z, y = training_pairs(logs, "eso", DEFAULT_FEATURE_SET, ThrustLag())
+    return train_lipschitz_mlp(z, y, lipschitz_bound=1.0, epochs=30,
+                               metadata={"feature_set": DEFAULT_FEATURE_SET}).network
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
@@ -61,8 +63,7 @@ def test_certified_setting_stays_inside_its_ultimate_bound(base_network):
     inputs = CertificateInputs(kp=control.kp[2], kd=control.kd[2], omega_o=EST.eso.omega_o_rps, lipschitz=0.0)
     l_max = max_certified_lipschitz(inputs, "tight")
     l_phys = 0.5 * l_max
-    ratio = base_network.certified_lipschitz_physical() / base_network.certified_lipschitz_normalised()
-    net = base_network.scaled_to_bound(l_phys / ratio)
+    net = base_network.scaled_to_bound(l_phys, "physical")
     assert net.certified_lipschitz_physical() <= l_phys * (1 + 1e-9)
     cert = certify_tight(replace(inputs, lipschitz=l_phys))
     assert cert.holds
@@ -94,16 +95,22 @@ def test_paper_pipeline_cli_writes_the_documented_json(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     data = json.loads(out.read_text())
-    assert set(data) == {"experiments", "seconds", "trials"} and data["trials"] == 1
-    exps = data["experiments"]
-    assert set(exps) == {"nominal_landing", "ood_slope", "lipschitz_ablation", "lemniscate_near_ground"}
-    assert exps["nominal_landing"]["metric"] == "steady_state_abs_z_error_cm"
-    assert exps["lemniscate_near_ground"]["metric"] == "z_rmse_cm"
-    assert set(exps["lemniscate_near_ground"]["methods"]) == set(METHODS)
-    assert set(exps["lipschitz_ablation"]["nominal"]) == {"0.2", "0.5", "1.0", "2.0"}
-    for exp in ("nominal_landing", "ood_slope", "lemniscate_near_ground"):
-        for result in exps[exp]["methods"].values():
-            assert set(result) == {"mean", "std", "trials", "diverged"}
-            assert len(result["trials"]) == 1
+    assert set(data) == {"experiments", "seconds", "trials", "recipe", "recipes"} and data["trials"] == 1
+    assert data["recipe"] == "certified" and set(data["recipes"]) == {"certified", "paper"}
+    assert data["recipes"]["certified"]["experiments"] == data["experiments"]
+    for name, recipe in data["recipes"].items():
+        exps = recipe["experiments"]
+        assert set(exps) == {"nominal_landing", "ood_slope", "lipschitz_ablation", "lemniscate_near_ground"}
+        assert exps["nominal_landing"]["metric"] == "steady_state_abs_z_error_cm"
+        assert exps["lemniscate_near_ground"]["metric"] == "z_rmse_cm"
+        assert set(exps["lemniscate_near_ground"]["methods"]) == set(METHODS)
+        assert len(exps["lipschitz_ablation"]["nominal"]) == 4
+        for exp in ("nominal_landing", "ood_slope", "lemniscate_near_ground"):
+            for result in exps[exp]["methods"].values():
+                assert set(result) == {"mean", "std", "trials", "diverged"}
+                assert len(result["trials"]) == 1
+    assert set(data["recipes"]["paper"]["experiments"]["lipschitz_ablation"]["nominal"]) == {"0.2", "0.5", "1.0", "2.0"}
+    assert data["recipes"]["certified"]["details"]["networks"]["base_x1"]["certificate_holds"]
+    assert not data["recipes"]["paper"]["details"]["networks"]["base_x1"]["certificate_holds"]
     assert len(list((tmp_path / "plots").glob("*.png"))) == 4
-    assert "Experiment 1" in proc.stdout and "comparisons" in proc.stdout
+    assert "Experiment 1" in proc.stdout and "comparisons" in proc.stdout and "recipe paper" in proc.stdout

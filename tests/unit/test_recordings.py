@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from neso.features import DEFAULT_FEATURE_SET, ThrustLag, feature_set
 from recordings.dataset import load_training_set, select
 from recordings.layout import channel_entity, channel_of, entity, fields_of, message_type, parse_channel_entity
 from recordings.reader import RecordingError, read_recording
@@ -136,12 +137,20 @@ def test_eso_training_set_has_the_network_input_and_x3_label_and_skips_cold_grou
     write(tmp_path / "eso.rrd", msgs)
     ts = load_training_set(tmp_path / "eso.rrd", "eso", skip_s=0.5)
     est = [m for c, m in msgs if c == "estimate"]
+    states = [m for c, m in msgs if c == "state"]
     # warm after 25 samples (0.5 s at 50 Hz), airborne from 40, thrust until 179
-    expected = [m for k, m in enumerate(est) if m.warm_ticks >= 25 and 40 <= k < 180]
-    assert len(ts) == len(expected) == 140
-    np.testing.assert_array_equal(ts.z, np.array([m.z for m in expected]))
-    np.testing.assert_array_equal(ts.y_mps2, np.array([m.f_hat_mps2[2] for m in expected]))
+    keep = [k for k, m in enumerate(est) if m.warm_ticks >= 25 and 40 <= k < 180]
+    assert len(ts) == len(keep) == 140
+    # the default inputs, rebuilt from the recorded states whatever network flew: [p_z, v_z, roll, pitch, v_xy]
+    assert ts.feature_set == DEFAULT_FEATURE_SET == "state_speed@1"
+    expected_z = [(states[k].pos_enu_m[2], states[k].vel_enu_mps[2], states[k].roll_rad, states[k].pitch_rad,
+                   np.hypot(*states[k].vel_enu_mps[:2])) for k in keep]
+    np.testing.assert_array_equal(ts.z, np.array(expected_z))
+    np.testing.assert_array_equal(ts.y_mps2, np.array([est[k].f_hat_mps2[2] for k in keep]))
     assert ts.label == "eso" and ts.vehicle == "uav1" and ts.recordings == (str(tmp_path / "eso.rrd"),)
+    paper = load_training_set(tmp_path / "eso.rrd", "eso", feature_set_key="paper@1")
+    setpoints = [m for c, m in msgs if c == "setpoint"]  # the paper's T_{k-1}: the thrust of the setpoint before
+    np.testing.assert_array_equal(paper.z[:, 2], [setpoints[k - 1].thrust_n for k in keep])
     with pytest.raises(RecordingError, match="no usable 'tdr' samples.*pathway not neural_eso"):
         load_training_set(tmp_path / "eso.rrd", "tdr")
 
@@ -162,7 +171,8 @@ def test_a_resent_sample_counts_once(tmp_path):
     msgs = flight_messages(60)
     at = [i for i, (c, _) in enumerate(msgs) if c == "estimate"][40]
     write(tmp_path / "r.rrd", msgs[: at + 1] + [msgs[at]] + msgs[at + 1:])  # answered again (a lockstep re-send)
-    assert len(select(read_recording(tmp_path / "r.rrd"), "eso").y_mps2) == 60 - 24
+    sel = select(read_recording(tmp_path / "r.rrd"), "eso", feature_set(DEFAULT_FEATURE_SET), ThrustLag())
+    assert len(sel.y_mps2) == 60 - 24
 
 
 def test_recordings_of_two_vehicles_are_refused_together(tmp_path):
@@ -234,7 +244,7 @@ def test_the_example_recording_is_small_and_gives_a_first_training_set():
     assert len(est) == 600 and set(est.columns["pathway"]) == {"eso"}
     # every warm sample (0.5 s = 25 periods) of the 12 s landing test, none on the ground
     assert len(ts) == int(np.sum(est.columns["warm_ticks"] >= 25)) == 576
-    assert ts.z.shape == (576, 5) and ts.vehicle == "uav1"
+    assert ts.z.shape == (576, feature_set(DEFAULT_FEATURE_SET).size) and ts.vehicle == "uav1"
     z_height = ts.z[:, 0]
     assert 0.05 < z_height.min() < 0.15 and 0.95 < z_height.max() < 1.05, "from 1 m down to 0.1 m"
     assert rec.properties["params"]["estimator"]["pathway"] == "eso"
