@@ -5,8 +5,11 @@
 2. fly the lemniscate mission (3 s ramp + 5 cycles of 6 s: 30 s of out-of-distribution data); the
    recorder writes the flight;
 3. stop the recording, have the trainer train a TDR network from that ``.rrd`` starting from the
-   active network, certify and store it and offer it to the estimator (gate → shadow);
-4. promote it in flight (hovering at the lemniscate's end point), then fly the lemniscate again.
+   active network (with its recipe: inputs, label, normalisation, the certified bound), certify it,
+   fly the recorded flight again with it and with the active network (the predicted change), store it
+   and offer it to the estimator (gate → shadow) if it is predicted to improve;
+4. promote it in flight (hovering at the lemniscate's end point), then fly the lemniscate again while
+   the estimator's canary compares the tracking with the first run.
 
 Reported: the z RMSE of the cycles before and after the swap (truth − reference, the ramps left
 out), missed deadlines (states without a setpoint from the estimator's f̂), the commanded-force
@@ -26,8 +29,11 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-RAMP_S = 3.0  # neso.trajectories.Lemniscate.ramp_s: the cycles start after it
-FORCE_STEP_LIMIT_N = 40.0 * 0.02  # the controller's force-increment limit per 50 Hz period
+from neso.control import ControlConfig
+from neso.trajectories import Lemniscate
+
+RAMP_S = Lemniscate().ramp_s  # the cycles start after it
+FORCE_STEP_LIMIT_N = ControlConfig().force_rate_limit_nps * ControlConfig().dt_s  # force increment per period
 
 
 def add_parser(subparsers) -> None:
@@ -68,6 +74,10 @@ class TdrReport:
     network_id: str = ""
     trainer_summary: str = ""
     stage_s: dict = field(default_factory=dict)
+    offered: bool = False  # the trainer offered the candidate (predicted to improve)
+    predicted: dict = field(default_factory=dict)  # the trainer's closed-loop prediction (RMSE cm, change)
+    certificate: dict = field(default_factory=dict)  # the candidate's, for the gains flown
+    canary: str = ""  # the canary's last word after the second run
 
     def lines(self) -> list[str]:
         st = ", ".join(f"{k} {v:.2f}" for k, v in self.stage_s.items())
@@ -85,6 +95,11 @@ class TdrReport:
             f"in shadow before the promote: candidate's RMS error against f̂ {self.shadow_error_rms_mps2:.3f} m/s², "
             f"active network's {self.active_error_rms_mps2:.3f} m/s²",
             f"recording -> promoted network, s: {st}",
+            f"predicted before the offer (the recorded flight flown again): z RMSE "
+            f"{self.predicted.get('rmse_active_cm', float('nan')):.2f} -> {self.predicted.get('rmse_candidate_cm', float('nan')):.2f} cm "
+            f"({self.predicted.get('change', float('nan')) * 100:+.0f} %); offered: {self.offered}; "
+            f"{self.certificate.get('text', 'certificate unknown')}",
+            f"canary: {self.canary or 'no verdict'}",
         ]
 
 
@@ -218,13 +233,26 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         report.recording = path
         log(f"recorded {path}; training TDR from it")
         t_train = time.monotonic()
-        reply = cmd("trainer", "train", recordings=[path], label="tdr", epochs=epochs)
+        reply = cmd("trainer", "train", recordings=[path], epochs=epochs)
         assert reply.ok, reply.message
         job = reply.message.split()[1]
         done = events.wait(lambda t: t.startswith(f"job {job} done") or t.startswith(f"job {job} failed"), 300.0)
         report.trainer_summary = done
-        if not done.startswith(f"job {job} done") or "offer accepted" not in done:
-            raise RuntimeError(f"training did not give an accepted candidate: {done}")
+        if not done.startswith(f"job {job} done"):
+            raise RuntimeError(f"training failed: {done}")
+        _registry_figures(registry, report)
+        report.offered = "offer accepted" in done
+        if not report.offered:  # predicted to fly worse (or refused): the base network flies on
+            log(f"candidate not offered: {done}")
+            if fly_after:
+                second_run = fly_lemniscate(probe, cmd)
+                refs, truths = probe.get("reference"), probe.get("truth")
+                report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
+                report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
+                report.improvement = 1.0 - report.rmse_after_cm / report.rmse_before_cm
+            events.close()
+            probe.close()
+            return report
         t_offered = time.monotonic()
         cand = probe.wait_for("network", lambda m: m.candidate.get("state") == "shadow", 5.0).candidate
         report.network_id = cand["id"]
@@ -240,7 +268,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         probe.wait_for("estimate", lambda m: m.network_id == cand["id"] and m.seq > before, 5.0)
         t_promoted = time.monotonic()
         swap_seq = min(m.seq for m in probe.get("estimate") if m.network_id == cand["id"])
-        report.stage_s = {"stop recording": t_train - t_stop, "train job (dataset, train, certify, store, offer)":
+        report.stage_s = {"stop recording": t_train - t_stop, "train job (dataset, train, certify, predict, store, offer)":
                           t_offered - t_train, "promote": t_promoted - t_promote,
                           "recording stopped -> promoted (without the 2 s shadow)":
                           (t_offered - t_stop) + (t_promoted - t_promote)}
@@ -253,7 +281,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         cmd("recorder", "start")
         second_run = fly_lemniscate(probe, cmd)
         runs = [first_run, second_run]
-        assert all(m.network_id == cand["id"] for m in probe.get("estimate") if runs[1][0] <= m.seq <= runs[1][1])
+        report.canary = probe.get("network")[-1].canary.get("last", "")
         analyse(probe, runs[0], runs[1], swap_seq, report)
         events.close()
         probe.close()
@@ -262,6 +290,19 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         session.close()
         interrupt(up, timeout_s=20.0)
         up_log.close()
+
+
+def _registry_figures(registry: str, report: TdrReport) -> None:
+    """The candidate's id, certificate and closed-loop prediction from the registry's sidecar."""
+    import glob
+
+    sidecars = sorted(glob.glob(os.path.join(registry, "*", "*.json")), key=os.path.getmtime)
+    if sidecars:
+        with open(sidecars[-1]) as f:
+            info = json.load(f)
+        report.network_id = info.get("id", "")
+        report.predicted = info.get("predicted", {})
+        report.certificate = info.get("certificate", {})
 
 
 def fly_lemniscate(probe, cmd) -> tuple[int, int]:
@@ -281,7 +322,7 @@ def _stage_times(summary: str) -> dict:
     """The trainer's ``stage x.xx s`` figures out of its job summary."""
     import re
 
-    return {m.group(1): float(m.group(2)) for m in re.finditer(r"(dataset|train|certify|store|offer) ([0-9.]+) s",
+    return {m.group(1): float(m.group(2)) for m in re.finditer(r"(dataset|train|certify|predict|store|offer) ([0-9.]+) s",
                                                                summary)}
 
 

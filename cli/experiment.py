@@ -27,7 +27,7 @@ def run(args) -> int:
 
     from neso.learning import RECIPES
     from sim.experiments import PaperConfig, results_json, run_paper
-    from sim.report import format_comparisons, format_recipe_header, format_tables
+    from sim.report import format_comparisons, format_labels, format_recipe_header, format_tables
 
     config = replace(PaperConfig(), trials=args.trials, workers=args.workers, seed=args.seed)
     if args.recipes:
@@ -49,6 +49,9 @@ def run(args) -> int:
         print(format_tables(rec["results"], rec["details"]))
         print()
         print(format_comparisons(rec["results"]))
+        if "labels" in rec["details"]:
+            print()
+            print(format_labels(rec["details"]))
     print(f"\n{args.trials} trials per method; total {run_.seconds:.1f} s wall")
     if args.json:
         args.json.write_text(json.dumps(results_json(run_, args.trials), indent=2))

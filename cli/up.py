@@ -18,7 +18,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--duration", type=float, default=0.0, help="seconds of flight, then stop (0: until Ctrl-C)")
     p.add_argument("--rate", type=float, default=50.0, help="control rate Hz")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--network", default=None, help="network file (default networks/base-L1.safetensors)")
+    p.add_argument("--network", default=None, help="network file (default: networks/base.safetensors, certified)")
+    p.add_argument("--allow-uncertified", action="store_true",
+                   help="fly a --network whose stability certificate fails (recorded as an event)")
     p.add_argument("--pathway", default="neural_eso", choices=("neural_eso", "eso", "nn", "none"))
     p.add_argument("--name", action="append", default=None, dest="names",
                    help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
@@ -55,6 +57,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--pathway", args.pathway, "--rate", str(args.rate)]
         if args.network is not None:
             specific += ["--network", args.network]
+        if args.allow_uncertified:
+            specific += ["--allow-uncertified"]
     elif role == "controller":
         specific = ["--mission", args.mission, "--rate", str(args.rate)]
     elif role == "recorder":
@@ -69,8 +73,6 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
             specific += ["--mavlink-log", args.mavlink_log if index == 0 else f"{args.mavlink_log}.{vehicle}"]
     elif role == "dashboard":
         specific = ["--host", args.dashboard_host, "--port", str(args.dashboard_port), "--nice", "0"]  # launcher nices it
-        if args.network is not None:
-            specific += ["--network", args.network]
     return python_module_argv("cli.main", "run", role, *common, *specific)
 
 

@@ -10,8 +10,8 @@ whatever order they arrive in. The figures are derived from the rows of the last
 - loop rate (Hz): setpoints per second of their publication stamps;
 - loop latency (ms): setpoint ``stamp_s − state_stamp_s`` (state published → setpoint published),
   p50/p99; bus → dashboard (ms): arrival here − the state's ``stamp_s`` (same machine only);
-- the stability certificate for the controller's gains, the estimator's ω_o and L_N
-  (:func:`certificate_for`, via :mod:`neso.certificate`).
+- the stability certificate as the estimator reports it (``NetworkMsg.certificate``: the verdict of the
+  process that applies changes; the page computes none, :meth:`VehicleModel.certificate`).
 
 Times: ``stamp_s`` and arrival times are ``time.monotonic()`` seconds; ``t_s`` is the source's clock.
 """
@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import numpy as np
 
@@ -35,34 +34,23 @@ STALE_HEALTH_S = 3.0  # a service whose last health report is older than this is
 
 @dataclass(frozen=True)
 class Certificate:
-    """The small-gain certificate at the worse of the two axes (xy and z gains).
-    ``margin``: min(α_e, α_o) (> 0 iff it holds); ``ultimate_bound``: on ‖E‖ (mixed SI, m …);
-    ``max_lipschitz_phys``: the largest certified L_N, (m/s²) per unit z."""
+    """The stability certificate the estimator reports for what flies (see :mod:`neso.certificate`).
+    ``lipschitz_phys`` and ``max_lipschitz_phys`` in (m/s²) per unit z; ``margin`` their difference."""
 
     holds: bool
     margin: float
-    ultimate_bound: float
     max_lipschitz_phys: float
     lipschitz_phys: float
     text: str
 
-
-@lru_cache(maxsize=256)
-def certificate_for(kp_xy: float, kd_xy: float, kp_z: float, kd_z: float, omega_o_rps: float,
-                    lipschitz_phys: float) -> Certificate:
-    """The tight certificate of :mod:`neso.certificate` for both axes' gains; holds only if
-    both hold. ``lipschitz_phys`` in (m/s²) per unit of z (physical units)."""
-    from neso.certificate import CertificateInputs, certify_tight
-
-    results = [certify_tight(CertificateInputs(kp=kp, kd=kd, omega_o=omega_o_rps, lipschitz=lipschitz_phys))
-               for kp, kd in ((kp_xy, kd_xy), (kp_z, kd_z))]
-    holds = all(r.holds for r in results)
-    margin = min(min(r.alpha_e, r.alpha_o) for r in results)
-    bound = max(r.ultimate_bound for r in results)
-    max_l = min(r.max_certified_lipschitz for r in results)
-    text = (f"{'HOLDS' if holds else 'FAILS'}: margin {margin:.3g}, ultimate bound "
-            f"{'∞' if not math.isfinite(bound) else f'{bound:.3g}'}, certified up to L_N {max_l:.3g} phys")
-    return Certificate(holds, margin, bound, max_l, lipschitz_phys, text)
+    @staticmethod
+    def of(report: dict) -> "Certificate | None":
+        """From ``NetworkMsg.certificate`` (None when it is not a complete verdict)."""
+        try:
+            return Certificate(bool(report["holds"]), float(report["margin"]), float(report["max_certified"]),
+                               float(report["lipschitz_phys"]), str(report["text"]))
+        except (KeyError, TypeError, ValueError):
+            return None
 
 
 @dataclass
@@ -218,16 +206,17 @@ class VehicleModel:
             return False
         return now_s - self.received.get("reference", -1e9) < 1.0
 
-    def lipschitz(self, phys_per_norm: float | None) -> tuple[float, float]:
-        """(L_N normalised, L_N physical) of the estimator's active network (NaN if unknown).
-        The physical factor comes from the network message when present, else ``phys_per_norm``."""
-        norm = self.params.get("estimator", {}).get("lipschitz_bound", math.nan)
+    def lipschitz(self) -> tuple[float, float]:
+        """(L_N physical, L_N normalised) certified of the estimator's active network (NaN if unknown)."""
         net = self.latest.get("network")
-        if isinstance(net, NetworkMsg) and "lipschitz_norm" in net.active and "lipschitz_phys" in net.active:
-            ln, lp = float(net.active["lipschitz_norm"]), float(net.active["lipschitz_phys"])
-            if ln > 0:
-                phys_per_norm = lp / ln
-        return float(norm), float(norm * phys_per_norm) if phys_per_norm else math.nan
+        if not isinstance(net, NetworkMsg):
+            return math.nan, math.nan
+        return float(net.active.get("lipschitz_phys", math.nan)), float(net.active.get("lipschitz_norm", math.nan))
+
+    def certificate(self) -> Certificate | None:
+        """The estimator's verdict for what flies now (None before its first network report)."""
+        net = self.latest.get("network")
+        return Certificate.of(net.certificate) if isinstance(net, NetworkMsg) else None
 
     def gains(self) -> dict[str, float] | None:
         c = self.params.get("controller", {})
@@ -236,19 +225,6 @@ class VehicleModel:
 
     def omega_o_rps(self) -> float:
         return float(self.params.get("estimator", {}).get("omega_o_rps", math.nan))
-
-    def certificate_inputs(self, phys_per_norm: float | None, *, gains: dict | None = None,
-                           lipschitz_norm: float | None = None) -> tuple | None:
-        """The arguments of :func:`certificate_for` for the current values, with ``gains`` or
-        ``lipschitz_norm`` proposed instead of the current ones (None if anything is unknown)."""
-        g = gains or self.gains()
-        omega = self.omega_o_rps()
-        norm, phys = self.lipschitz(phys_per_norm)
-        if lipschitz_norm is not None and norm > 0 and math.isfinite(phys):
-            phys = phys / norm * lipschitz_norm
-        if g is None or not math.isfinite(omega) or not math.isfinite(phys):
-            return None
-        return (g["kp_xy"], g["kd_xy"], g["kp_z"], g["kd_z"], omega, phys)
 
 
 class FleetModel:

@@ -60,19 +60,6 @@ class BusFacade:
             return r.ok, r.error if not r.ok else f"{service} will apply {values}"
         self._submit(go, reply)
 
-    def guarded_set(self, vehicle: str, service: str, values: dict, guard: Callable[[], tuple[bool, str]],
-                    reply: Reply) -> None:
-        """Run ``guard`` (e.g. the certificate) first; send only if it allows, else reply its refusal."""
-        from runtime.client import set_params
-
-        def go() -> tuple[bool, str]:
-            allowed, why = guard()
-            if not allowed:
-                return False, why
-            r = set_params(self.session, Keys(vehicle), service, values, timeout_s=self.timeout_s)
-            return r.ok, (r.error if not r.ok else f"{service} will apply {values} · certificate {why}")
-        self._submit(go, reply)
-
     def command(self, vehicle: str, service: str, name: str, args: dict, reply: Reply) -> None:
         from runtime.client import command
 
@@ -115,7 +102,7 @@ class Dashboard:
     """The running dashboard: observer → model → view, plus the bus facade for controls."""
 
     def __init__(self, bus, *, host: str, port: int, ui_rate_hz: float = 20.0, window_s: float = 10.0,
-                 phys_per_norm: float | None = None, default_vehicle: str = "uav1") -> None:
+                 default_vehicle: str = "uav1") -> None:
         import viser
 
         from dashboard.model import FleetModel
@@ -133,7 +120,7 @@ class Dashboard:
             self.facade.close()
             self.observer.close()
             raise PortTaken(f"port {port} is taken (viser would have moved to {actual}): choose --port")
-        self.view = DashboardView(self.server, self.model, self.lock, self.facade, phys_per_norm=phys_per_norm,
+        self.view = DashboardView(self.server, self.model, self.lock, self.facade,
                                   default_vehicle=default_vehicle)
         self.period_s = 1.0 / ui_rate_hz
         self._seeded: set[tuple[str, str]] = set()
@@ -194,33 +181,14 @@ class Dashboard:
         self.observer.close()
 
 
-def physical_factor(network_path: str) -> float | None:
-    """(physical L_N) / (normalised L_N) of the network file the estimator flies, for the
-    certificate when no network report is on the bus (None if the file cannot be read)."""
-    if not network_path:
-        return None
-    try:
-        from neso.netfile import load_network
-
-        net = load_network(network_path)
-        return net.lipschitz_bound_physical() / net.lipschitz_bound
-    except Exception as exc:
-        print(f"[dashboard] cannot read {network_path} for the L_N units: {exc}", flush=True)
-        return None
-
-
 # -- service entry points ---------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from services.estimator import DEFAULT_NETWORK
-
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback only)")
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     parser.add_argument("--ui-rate", type=float, default=20.0, help="pose updates per second (plots at half)")
     parser.add_argument("--window", type=float, default=10.0, help="seconds shown in plots and figures")
     parser.add_argument("--nice", type=int, default=10,
                         help="CPU niceness added at start (default 10): the page must never slow the control loop")
-    parser.add_argument("--network", default=DEFAULT_NETWORK,
-                        help="the network the estimators fly (for L_N in physical units until a network report)")
 
 
 def run(args, bus) -> int:
@@ -229,7 +197,6 @@ def run(args, bus) -> int:
 
     if args.nice:
         os.nice(args.nice)
-    factor = physical_factor(args.network)
     stopping = threading.Event()
     holder: list[Dashboard] = []
 
@@ -242,7 +209,7 @@ def run(args, bus) -> int:
     while not stopping.is_set():
         try:
             dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
-                             phys_per_norm=factor, default_vehicle=args.vehicle)
+                             default_vehicle=args.vehicle)
             break
         except PortTaken as exc:  # wait for it rather than crash-loop: the flight never depends on the page
             print(f"[dashboard] {exc}; trying again in {PORT_RETRY_S:g} s", flush=True)
@@ -252,8 +219,7 @@ def run(args, bus) -> int:
     holder.append(dash)
     if stopping.is_set():
         dash.stop()
-    print(f"[dashboard] serving http://{args.host}:{args.port} (L_N physical/normalised "
-          f"{'unknown' if factor is None else f'{factor:.4g}'})", flush=True)
+    print(f"[dashboard] serving http://{args.host}:{args.port}", flush=True)
     try:
         dash.run()
         return 0

@@ -9,11 +9,10 @@ from __future__ import annotations
 import math
 import threading
 import time
-from typing import Callable
 
 import numpy as np
 
-from dashboard.model import Certificate, FleetModel, VehicleModel, certificate_for
+from dashboard.model import FleetModel, VehicleModel
 from neso.rotations import world_from_body_zyx
 
 PATHWAYS = ("neural_eso", "eso", "nn", "none")
@@ -25,6 +24,15 @@ PX4_COMMANDS = (("PX4 arm", "arm", None), ("PX4 offboard", "offboard_start", Non
                 ("PX4 land", "land", None), ("PX4 disarm", "disarm", None))  # px4_gateway (--vehicle mavlink)
 SCENARIOS = {"nominal": "nominal_landing", "slope": "ood_slope", "turbulence": "lemniscate_near_ground"}
 PLOT_POINTS = 300  # points per series sent to the browser
+
+
+def _predicted(candidate: dict) -> str:
+    """The trainer's closed-loop prediction for a candidate, as the network panel shows it."""
+    p = candidate.get("predicted") or {}
+    if "change" not in p:
+        return "no closed-loop prediction"
+    return (f"predicted z RMSE {p.get('rmse_active_cm', math.nan):.2f} → {p.get('rmse_candidate_cm', math.nan):.2f} cm "
+            f"({p['change'] * 100:+.0f} %)")
 
 
 def _fmt(x: float, spec: str = ".3f", unit: str = "") -> str:
@@ -63,15 +71,11 @@ def _quat_wxyz(roll: float, pitch: float, yaw: float) -> tuple[float, float, flo
 class DashboardView:
     """Builds the page once and re-renders the selected vehicle on :meth:`render`."""
 
-    def __init__(self, server, model: FleetModel, lock: threading.Lock, bus, *, phys_per_norm: float | None,
-                 default_vehicle: str = "uav1", certify: Callable[..., Certificate] = certificate_for) -> None:
+    def __init__(self, server, model: FleetModel, lock: threading.Lock, bus, *, default_vehicle: str = "uav1") -> None:
         self.server, self.model, self.lock, self.bus = server, model, lock, bus
-        self.phys_per_norm = phys_per_norm
-        self.certify = certify
         self.selected = default_vehicle
         self._text_cache: dict[int, str] = {}
         self._pending_pathway: tuple[str, str] | None = None
-        self._cert_cache: dict[tuple, Certificate] = {}
         self._scenario_drawn = ""
         self._build()
 
@@ -117,7 +121,7 @@ class DashboardView:
             self.cancel_btn = gui.add_button("Cancel", visible=False)
             self.confirm_btn.on_click(lambda _: self._confirm_pathway(True))
             self.cancel_btn.on_click(lambda _: self._confirm_pathway(False))
-            self.lip_in = gui.add_number("L_N (normalised)", 1.0, min=1e-4, max=100.0, step=1e-4)
+            self.lip_in = gui.add_number("L_N (physical)", 0.5, min=1e-4, max=100.0, step=1e-4)
             self.lip_override = gui.add_checkbox("Override certificate (L_N)", False)
             self.lip_btn = gui.add_button("Apply L_N")
             self.lip_btn.on_click(lambda _: self._apply_lipschitz())
@@ -188,13 +192,6 @@ class DashboardView:
     def _select(self, name: str) -> None:
         self.selected = name
 
-    def _cert(self, inputs: tuple | None) -> Certificate | None:
-        if inputs is None:
-            return None
-        if inputs not in self._cert_cache:
-            self._cert_cache[inputs] = self.certify(*inputs)
-        return self._cert_cache[inputs]
-
     # -- controls (each only hands a request to the bus facade) ---------------------------
     def _on_pathway(self, _event) -> None:
         value, vehicle = self.pathway_dd.value, self.selected
@@ -224,38 +221,18 @@ class DashboardView:
                             lambda ok, text: self._show_reply(self.reply, f"pathway {value} on {vehicle}", ok, text))
 
     def _apply_lipschitz(self) -> None:
-        value, vehicle, override = float(self.lip_in.value), self.selected, bool(self.lip_override.value)
-        with self.lock:
-            inputs = self._vehicle().certificate_inputs(self.phys_per_norm, lipschitz_norm=value)
-
-        def guarded() -> tuple[bool, str]:
-            cert = self._cert(inputs)
-            if cert is None:
-                return False, "certificate unknown (no gains, ω_o or L_N from the vehicle yet)"
-            if not cert.holds and not override:
-                return False, f"certificate {cert.text} at L_N={value:g} (physical {cert.lipschitz_phys:.3g}); " \
-                              "tick override to send anyway"
-            return True, cert.text
-
-        self.bus.guarded_set(vehicle, "estimator", {"lipschitz_bound": value}, guarded,
-                             lambda ok, text: self._show_reply(self.reply, f"L_N={value:g} on {vehicle}", ok, text))
+        """The estimator checks the certificate and answers; the page only shows the answer."""
+        value, vehicle = float(self.lip_in.value), self.selected
+        values = {"lipschitz_bound": value, "override": bool(self.lip_override.value)}
+        self.bus.set_params(vehicle, "estimator", values,
+                            lambda ok, text: self._show_reply(self.reply, f"L_N={value:g} on {vehicle}", ok, text))
 
     def _apply_gains(self) -> None:
+        """The controller checks the certificate and answers; the page only shows the answer."""
         gains = {k: float(h.value) for k, h in self.gain_in.items()}
-        vehicle, override = self.selected, bool(self.gain_override.value)
-        with self.lock:
-            inputs = self._vehicle().certificate_inputs(self.phys_per_norm, gains=gains)
-
-        def guarded() -> tuple[bool, str]:
-            cert = self._cert(inputs)
-            if cert is None:
-                return False, "certificate unknown (no ω_o or L_N from the vehicle yet)"
-            if not cert.holds and not override:
-                return False, f"certificate {cert.text}; tick override to send anyway"
-            return True, cert.text
-
-        self.bus.guarded_set(vehicle, "controller", gains, guarded,
-                             lambda ok, text: self._show_reply(self.reply, f"gains {gains} on {vehicle}", ok, text))
+        vehicle = self.selected
+        self.bus.set_params(vehicle, "controller", {**gains, "override": bool(self.gain_override.value)},
+                            lambda ok, text: self._show_reply(self.reply, f"gains {gains} on {vehicle}", ok, text))
 
     def _mission(self, name: str) -> None:
         vehicle = self.selected
@@ -338,14 +315,11 @@ class DashboardView:
 
     def _render_text(self, v: VehicleModel, now_s: float) -> None:
         state, est, ref = v.latest.get("state"), v.latest.get("estimate"), v.latest.get("reference")
-        cert_inputs = v.certificate_inputs(self.phys_per_norm)
-        cert = self._cert_cache.get(cert_inputs) if cert_inputs is not None else None
-        if cert_inputs is not None and cert is None:
-            self.bus.compute(lambda: self._cert(cert_inputs))  # first time for these inputs: off this thread
+        cert = v.certificate()
         rms_z, rms_3d = v.tracking_rms_m()
         lat50, lat99 = v.loop_latency_ms()
         bus50, bus99 = v.bus_latency_ms()
-        ln, lp = v.lipschitz(self.phys_per_norm)
+        lp, ln = v.lipschitz()
         segment = ref.segment if ref is not None and now_s - v.received.get("reference", -1e9) < 1.0 else "idle"
         rec = v.latest.get("recording")
         rec_text = "not recorded (no recorder on the bus)" if rec is None else (
@@ -373,10 +347,11 @@ class DashboardView:
             f"| bus → dashboard p50/p99 | {_fmt(bus50, '.2f')} / {_fmt(bus99, '.2f')} ms |",
             f"| pathway | {est.pathway if est else '–'} |",
             f"| network | `{est.network_id if est else '–'}` |",
-            f"| L_N normalised / physical | {_fmt(ln, '.4g')} / {_fmt(lp, '.4g')} (m/s²)/unit z |",
+            f"| L_N physical / normalised | {_fmt(lp, '.4g')} (m/s²)/unit z / {_fmt(ln, '.4g')} |",
             f"| network origin | {origin[:160]} |",
             f"| ω_o | {_fmt(v.omega_o_rps(), '.1f', ' rad/s')} |",
-            f"| certificate | {'computing…' if cert is None and cert_inputs else (cert.text if cert else '–')} |",
+            f"| certificate | {cert.text if cert else 'waiting for the estimator'} |",
+            f"| canary | {(net.canary.get('last') or 'idle') if net is not None else '–'} |",
         ]
         self._set(self.figures, "\n".join(lines))
         events = [f"- `{e.service}` {e.level}: {e.text[:140]}" for e in list(v.events)[-5:]]
@@ -406,11 +381,14 @@ class DashboardView:
                        f"`{est.network_id if est else '–'}`"
         else:
             cand = net.candidate
-            net_text = (f"**Active** `{net.active.get('id', '?')}` from {net.active.get('source', '?')} · L_N "
-                        f"{net.active.get('lipschitz_norm', '–')} normalised / {net.active.get('lipschitz_phys', '–')} phys  \n"
+            net_text = (f"**Active** `{net.active.get('id', '?')}` from {net.active.get('source', '?')} · inputs "
+                        f"{net.active.get('feature_set', '–')} · L_N {_fmt(lp, '.4g')} phys / {_fmt(ln, '.4g')} normalised  \n"
                         + (f"**Candidate** `{cand.get('id')}` ({cand.get('state', '')}) · shadow error "
-                           f"{net.shadow_error_rms_mps2:.3f} m/s² RMS" if cand else "no candidate")
-                        + (f"  \nprevious `{net.previous.get('id')}`" if net.previous else ""))
+                           f"{net.shadow_error_rms_mps2:.3f} m/s² RMS · {_predicted(cand)} · "
+                           f"certificate {'holds' if cand.get('certificate', {}).get('holds') else 'FAILS'}"
+                           if cand else "no candidate")
+                        + (f"  \nprevious `{net.previous.get('id')}`" if net.previous else "")
+                        + f"  \ncanary: {net.canary.get('last') or 'idle'}")
         self._set(self.network, net_text)
         if self._pending_pathway is not None and self._pending_pathway[0] != self.selected:
             self._confirm_pathway(False)

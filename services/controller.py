@@ -126,9 +126,9 @@ class ControllerCore:
             return None
         inputs = self._certificate_inputs()
         if inputs is None:
-            return Refusal("refused: certificate unknown (no network report from the estimator yet)", overridable=True)
+            return Refusal("certificate unknown (no network report from the estimator yet)", overridable=True)
         cert = flight_certificate(inputs[0], kp=kp, kd=kd, omega_o=inputs[1])
-        return None if cert.holds else Refusal(f"refused: {cert.text()}", overridable=True)
+        return None if cert.holds else Refusal(cert.text(), overridable=True)
 
     # -- operator inputs (applied at the next sample) ---------------------------------------
     def command(self, name: str, args: dict) -> tuple[bool, str]:

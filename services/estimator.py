@@ -222,7 +222,7 @@ class EstimatorCore:
         if net is not None and values["pathway"] in PRIOR_PATHWAYS:
             cert = self.certificate_of(net)
             if not cert.holds:
-                return Refusal(f"refused: {cert.text()}", overridable=True)
+                return Refusal(cert.text(), overridable=True)
         return None
 
     def apply(self, changed: dict) -> str:
@@ -279,9 +279,9 @@ class EstimatorCore:
         change = (info.get("predicted") or {}).get("change")
         if not force:
             if not cert.holds:
-                return False, f"refused: candidate {info['id']}: {cert.text()} (promote with force=true to fly it anyway)"
+                return False, f"candidate {info['id']}: {cert.text()} (promote with force=true to fly it anyway)"
             if isinstance(change, (int, float)) and change >= 0:
-                return False, (f"refused: candidate {info['id']} is predicted to fly worse{_predicted_text(info['predicted'])}"
+                return False, (f"candidate {info['id']} is predicted to fly worse{_predicted_text(info['predicted'])}"
                                " (promote with force=true to fly it anyway)")
         shadow = self.shadow.rms()
         self.previous = (self.estimator.network, self.active_info)

@@ -147,6 +147,23 @@ def acceleration_dataset(logs: list[FlightLog], fset_key: str, lag: ThrustLag, d
     return np.concatenate(zs), np.concatenate(ys)
 
 
+def label_quality(log: FlightLog, kind: str, lag: ThrustLag, *, late_s: float = 3.0, dt_s: float = 0.02) -> dict:
+    """A label against the simulator's truth (the disturbance relative to the applied thrust, averaged over
+    each period, through the labels' 5 Hz zero-phase low-pass): RMS (m/s²), the shift of best match (s) and
+    the correlation of the label's error with the commanded thrust rate (an echo of the command)."""
+    from neso.learning import zero_phase
+
+    series = log.series()
+    truth = zero_phase(log.applied_disturbance_truth_z(dt_s)[1:len(series)], dt_s, 5.0)
+    y = labels(series, kind, lag)[1:]
+    late = series.t_s[1:] >= series.t_s[0] + late_s
+    err = y - truth
+    best = min(range(12), key=lambda k: float(np.mean(((y[k:] - truth[:len(truth) - k]) ** 2)[late[k:]])))
+    t_dot = np.diff(log.thrust_n[:len(series)]) / dt_s
+    return {"rms_mps2": float(np.sqrt(np.mean(err[late] ** 2))), "lag_s": best * dt_s,
+            "corr_with_thrust_rate": float(np.corrcoef(err[late], t_dot[late])[0, 1])}
+
+
 def train(z: np.ndarray, y: np.ndarray, *, bound: float, units: str, config: PaperConfig, name: str,
           fset_key: str, lag: ThrustLag, recipe_name: str, init=None, scalers: str = "init", source: str = ""):
     from neso.training import train_lipschitz_mlp
@@ -239,7 +256,8 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
 def _shared_flights(flights: _Flights) -> dict:
     """scenario → method → logs of the methods without a network."""
     c = flights.config
-    plan = [("nominal_landing", c.landing), ("ood_slope", c.landing), ("lemniscate_near_ground", c.lemniscate)]
+    plan = [("nominal_landing", c.landing), ("ood_slope", c.landing), ("lemniscate_near_ground", c.lemniscate),
+            ("nominal_landing_noiseless", c.landing)]
     groups = flights.pool.map_groups([flights.tasks(s, m, {}, traj) for s, traj in plan for m in SHARED_METHODS])
     out: dict = {}
     for (scenario, _), i in zip(plan, range(0, len(groups), len(SHARED_METHODS))):
@@ -280,6 +298,7 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     flights.tick(f"{recipe.name}: experiments 1-2")
     results["lipschitz_ablation"] = _ablation(flights, nets, results, recipe, bound)
     flights.tick(f"{recipe.name}: lipschitz_ablation")
+    results["noise_free_nominal"], logs["noise_free_nominal"] = _noise_free(flights, base, shared)
 
     tdr_traj = replace(config.lemniscate, cycles=config.tdr_cycles)
     (tdr_log,) = pool.map(flights.tasks("lemniscate_near_ground", "neural_eso", base, tdr_traj,
@@ -291,6 +310,8 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
                     source=f"{recipe.tdr_label}:lemniscate_near_ground")
     details["networks"]["tdr"] = _network_details(tdr_res, config)
     details["tdr_samples"] = int(len(y_r))
+    details["labels"] = {"landing (teacher)": {k: label_quality(teacher_logs[0], k, lag) for k in ("eso", "applied")},
+                         "lemniscate (TDR flight)": {k: label_quality(tdr_log, k, lag) for k in ("tdr", "applied")}}
     nets3 = dict(base, tdr=tdr_res.network)
     own = [m for m in LEMNISCATE_METHODS if m not in SHARED_METHODS]
     groups = pool.map_groups([flights.tasks("lemniscate_near_ground", m, nets3, config.lemniscate) for m in own])
@@ -316,6 +337,29 @@ def _landing_experiment(flights: _Flights, scenario, methods, networks, shared, 
         out["methods"][method] = summarise([m[0] for m in metrics])
         details["settling_time_s"][scenario][method] = summarise([m[1] for m in metrics])
     return out, logs
+
+
+def _noise_free(flights: _Flights, networks: dict, shared: dict) -> tuple[dict, dict]:
+    """The nominal landing with noise-free motion capture: steady-state error, thrust spread and the
+    dominant frequency of the error (a limit cycle shows as a peak with a large thrust spread)."""
+    config = flights.config
+    (ours,) = flights.pool.map_groups([flights.tasks("nominal_landing_noiseless", "neural_eso", networks, config.landing)])
+    logs = {"pd_eso": shared["nominal_landing_noiseless"]["pd_eso"], "neural_eso": ours}
+    out = {"metric": "steady_state_abs_z_error_cm", "methods": {}, "thrust_std_n": {}, "peak_hz": {}}
+    for method, fl in logs.items():
+        out["methods"][method] = summarise([landing_metrics(f, config)[0] for f in fl])
+        stats = [_steady_spectrum(f, config) for f in fl if not f.diverged]
+        out["thrust_std_n"][method] = summarise([s[0] for s in stats])
+        out["peak_hz"][method] = summarise([s[1] for s in stats])
+    return out, logs
+
+
+def _steady_spectrum(log: FlightLog, config: PaperConfig) -> tuple[float, float]:
+    """(thrust std N, frequency of the largest peak of the z error Hz) after the descent has settled."""
+    late = np.isfinite(log.t_s) & (log.t_s >= config.landing.descent_end_s + config.settle_after_descent_s)
+    e = log.z_error_m[late] - np.mean(log.z_error_m[late])
+    freqs = np.fft.rfftfreq(len(e), config.control.dt_s)
+    return float(np.std(log.thrust_n[late])), float(freqs[1 + np.argmax(np.abs(np.fft.rfft(e))[1:])])
 
 
 def _ablation(flights: _Flights, nets: dict, results: dict, recipe: Recipe, bound: float) -> dict:

@@ -44,6 +44,16 @@ def format_recipe_header(name: str, details: dict) -> str:
             f"({tdr.get('certified_lipschitz_physical', float('nan')):.3g}) ===")
 
 
+def format_labels(details: dict) -> str:
+    """The labels against the simulator's truth (sim.experiments.label_quality)."""
+    rows = [("flight · label", "RMS vs truth [m/s²]", "best-match shift [ms] · corr(error, Ṫ_cmd)")]
+    for flight, by_kind in details.get("labels", {}).items():
+        for kind, q in by_kind.items():
+            rows.append((f"{flight} · {kind}", f"{q['rms_mps2']:.3f}",
+                         f"{q['lag_s'] * 1e3:.0f} · {q['corr_with_thrust_rate']:+.2f}"))
+    return _table("Labels against the simulator's truth (disturbance relative to the applied thrust)", rows)
+
+
 def format_tables(results: dict, details: dict | None = None) -> str:
     out = []
     for name, title in (
@@ -62,6 +72,13 @@ def format_tables(results: dict, details: dict | None = None) -> str:
             paper = PAPER_FIGURES_CM[name].get(method)
             rows.append((method, cell, "—" if paper is None else f"{paper:.2f}"))
         out.append(_table(title, rows))
+    if "noise_free_nominal" in results:
+        nf = results["noise_free_nominal"]
+        rows = [("method", "steady-state |e_z| [cm]", "thrust std [N]  ·  error peak [Hz]")]
+        for method, result in nf["methods"].items():
+            std, peak = nf["thrust_std_n"][method], nf["peak_hz"][method]
+            rows.append((method, _cell(result), f"{_num(std)}  ·  {_num(peak)}"))
+        out.append(_table("Noise-free nominal landing (motion capture without noise)", rows))
     if "lipschitz_ablation" in results:
         rows = [(f"L_N ({results['lipschitz_ablation'].get('units', 'normalised')})", "nominal", "OOD")]
         abl = results["lipschitz_ablation"]
@@ -114,6 +131,10 @@ def comparisons(results: dict) -> list[tuple[str, bool, str]]:
         claims.append(("lemniscate: pd_nn worse than pd_eso", (mean(le, "pd_nn") or float("inf")) > (eso or 0),
                        f"pd_nn {_fmt([mean(le, 'pd_nn')])[0]}, pd_eso {_fmt([eso])[0]}"))
     return claims
+
+
+def _num(result: dict) -> str:
+    return "–" if result.get("mean") is None else f"{result['mean']:.3f} ± {result['std']:.3f}"
 
 
 def _fmt(values):

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neso.netfile import save_network
+from neso.netfile import load_network, save_network
 from runtime.client import command, get_params
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
@@ -202,7 +202,7 @@ def test_nn_while_airborne_asks_for_confirmation(flight):
 
 
 def set_lipschitz(page, value: str, override: bool) -> None:
-    box = page.get_by_label(re.compile(r"^L.N \(normalised\)$"))
+    box = page.get_by_label(re.compile(r"^L.N \(physical\)$"))
     box.fill(value)
     box.press("Tab")
     checkbox = page.get_by_label(re.compile(r"Override certificate \(L.N\)"))
@@ -216,25 +216,37 @@ def estimator_bound(flight) -> float:
     return get_params(flight.s, KEYS, "estimator").values["lipschitz_bound"]
 
 
+def _bound(stem: str) -> float:
+    return load_network(os.path.join(REPO, "networks", f"{stem}.safetensors")).lipschitz_bound_physical()
+
+
+def test_the_page_opens_on_the_estimators_certificate_holding(flight):
+    page = flight.page
+    wait_text(page, r"certificate \*?\*?HOLDS")
+    tab(page, "Flight")
+    wait_text(page, r"certificate holds: L_N 0\.\d+ \(m/s²\)/unit z physical vs 0\.\d+ certified for kp 10, kd 6")
+
+
 def test_lipschitz_bound_certified_is_applied_uncertifiable_refused_unless_overridden(flight):
+    """The page sends; the estimator checks the certificate and answers; the page shows the answer."""
     page = flight.page
     tab(page, "Control")
-    set_lipschitz(page, "0.02", override=False)  # 0.02 normalised = 0.63 physical: the certificate holds
-    wait_text(page, r"accepted · L_N=0\.02 on uav1.*HOLDS")
-    flight.probe.wait_for("estimate", lambda m: m.network_id.endswith("@L0.02"), timeout_s=5)
-    assert estimator_bound(flight) == pytest.approx(0.02)
+    half, double = _bound("base-x0.5"), _bound("base-x2")
+    set_lipschitz(page, f"{half:.4f}", override=False)  # a network trained for it is on disk: certified
+    wait_text(page, rf"accepted · L_N={half:.4g} on uav1")
+    flight.probe.wait_for("estimate", lambda m: m.network_id.startswith("base-x0.5@"), timeout_s=5)
 
-    set_lipschitz(page, "0.5", override=False)  # 15.8 physical: fails
-    wait_text(page, r"refused · L_N=0\.5 on uav1: certificate FAILS")
+    set_lipschitz(page, f"{double:.4f}", override=False)  # base-x2: outside the certificate
+    wait_text(page, rf"refused · L_N={double:.4g} on uav1: certificate FAILS.*margin -")
     time.sleep(0.5)
-    assert estimator_bound(flight) == pytest.approx(0.02)  # nothing was sent
+    assert flight.probe.get("estimate")[-1].network_id.startswith("base-x0.5@")  # nothing changed
 
-    set_lipschitz(page, "0.5", override=True)
-    wait_text(page, r"accepted · L_N=0\.5 on uav1")
-    flight.probe.wait_for("estimate", lambda m: m.network_id.endswith("@L0.5"), timeout_s=5)
-    assert estimator_bound(flight) == pytest.approx(0.5)
-    set_lipschitz(page, "1", override=True)
-    wait_text(page, r"accepted · L_N=1 on uav1")
+    set_lipschitz(page, f"{double:.4f}", override=True)
+    wait_text(page, rf"accepted · L_N={double:.4g} on uav1")
+    flight.probe.wait_for("estimate", lambda m: m.network_id.startswith("base-x2@"), timeout_s=5)
+    wait_text(page, r"certificate \*?\*?FAILS")
+    set_lipschitz(page, f"{_bound('base'):.6f}", override=False)
+    wait_text(page, r"certificate \*?\*?HOLDS")
 
 
 def test_land_and_take_off_buttons_move_the_simulated_vehicle(flight):
@@ -302,7 +314,7 @@ def test_px4_recorder_and_network_reports_are_shown_when_present(flight):
     wait_text(page, r"Active cand-7")
     page.get_by_role("button", name="Roll back").click()
     wait_text(page, r"accepted · estimator rollback on uav1")
-    wait_text(page, r"Active base-L1")
+    wait_text(page, r"Active base ")
 
 
 def test_bus_to_dom_latency(flight):

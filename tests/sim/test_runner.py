@@ -100,7 +100,9 @@ def test_paper_pipeline_cli_writes_the_documented_json(tmp_path):
     assert data["recipes"]["certified"]["experiments"] == data["experiments"]
     for name, recipe in data["recipes"].items():
         exps = recipe["experiments"]
-        assert set(exps) == {"nominal_landing", "ood_slope", "lipschitz_ablation", "lemniscate_near_ground"}
+        assert set(exps) == {"nominal_landing", "ood_slope", "lipschitz_ablation", "lemniscate_near_ground",
+                             "noise_free_nominal"}
+        assert set(exps["noise_free_nominal"]["methods"]) == {"pd_eso", "neural_eso"}
         assert exps["nominal_landing"]["metric"] == "steady_state_abs_z_error_cm"
         assert exps["lemniscate_near_ground"]["metric"] == "z_rmse_cm"
         assert set(exps["lemniscate_near_ground"]["methods"]) == set(METHODS)

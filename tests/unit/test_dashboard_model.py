@@ -6,9 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from dashboard.model import FleetModel, VehicleModel, certificate_for
+from dashboard.model import FleetModel, VehicleModel
 from dashboard.service import decode_into
-from neso.certificate import CertificateInputs, certify_tight
 from runtime.schema import (EstimateMsg, HealthMsg, Keys, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg)
 
 
@@ -77,30 +76,18 @@ def test_a_new_flight_clears_the_old_one():
     assert v.flights == 1 and len(v.window()["t"]) == 1 and len(v.trail) == 1
 
 
-def test_certificate_is_neso_certificate_at_the_worse_axis():
-    cert = certificate_for(6.0, 4.5, 10.0, 6.0, 15.0, 0.5)
-    both = [certify_tight(CertificateInputs(kp=kp, kd=kd, omega_o=15.0, lipschitz=0.5)) for kp, kd in ((6, 4.5), (10, 6))]
-    assert cert.holds == all(r.holds for r in both)
-    assert cert.margin == pytest.approx(min(min(r.alpha_e, r.alpha_o) for r in both))
-    assert cert.ultimate_bound == pytest.approx(max(r.ultimate_bound for r in both))
-    assert certificate_for(6.0, 4.5, 10.0, 6.0, 15.0, 0.1).holds
-    fails = certificate_for(6.0, 4.5, 10.0, 6.0, 15.0, 31.6)
-    assert not fails.holds and fails.margin < 0 and "FAILS" in fails.text
+def test_the_certificate_shown_is_the_estimators_verdict_not_the_pages():
+    from neso.certificate import flight_certificate
 
-
-def test_certificate_inputs_use_physical_units_and_the_proposed_value():
     v = VehicleModel("uav1")
-    assert v.certificate_inputs(31.6) is None  # nothing known yet
-    v.ingest_params("controller", {"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 10.0, "kd_z": 6.0})
-    v.ingest_params("estimator", {"pathway": "eso", "lipschitz_bound": 1.0, "omega_o_rps": 15.0})
-    assert v.certificate_inputs(31.6) == pytest.approx((6.0, 4.5, 10.0, 6.0, 15.0, 31.6))
-    assert v.certificate_inputs(31.6, lipschitz_norm=0.02)[-1] == pytest.approx(0.632)
-    gains = {"kp_xy": 1.0, "kd_xy": 2.0, "kp_z": 3.0, "kd_z": 4.0}
-    assert v.certificate_inputs(31.6, gains=gains)[:4] == (1.0, 2.0, 3.0, 4.0)
-    # a network report on the bus is preferred to the file's factor
-    v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a", "lipschitz_norm": 0.5, "lipschitz_phys": 5.0},
-                                   candidate={}, previous={}, shadow_error_rms_mps2=-1.0), 0.0)
-    assert v.lipschitz(31.6) == pytest.approx((1.0, 10.0))
+    assert v.certificate() is None and math.isnan(v.lipschitz()[0])  # nothing reported yet: nothing claimed
+    verdict = flight_certificate(3.2, kp=10.0, kd=6.0, omega_o=15.0)
+    v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a", "lipschitz_norm": 0.5, "lipschitz_phys": 3.2},
+                                   candidate={}, previous={}, shadow_error_rms_mps2=-1.0,
+                                   certificate=verdict.to_dict()), 0.0)
+    cert = v.certificate()
+    assert not cert.holds and cert.margin == pytest.approx(verdict.margin) and "FAILS" in cert.text
+    assert cert.max_lipschitz_phys == pytest.approx(verdict.max_certified) and v.lipschitz() == (3.2, 0.5)
 
 
 def test_bad_payloads_are_counted_never_fatal_and_routed_by_vehicle():

@@ -1,0 +1,70 @@
+"""The canary through real processes: a deliberately bad network promoted by force in a `neso up` hover
+is rolled back by the estimator itself, the vehicle stays within 5 cm of its reference (sim truth), and the
+flight's `.rrd` holds the event."""
+from __future__ import annotations
+
+import glob
+import os
+import time
+
+
+from neso.netfile import save_network
+from recordings.reader import read_recording
+from runtime.client import command
+from runtime.probe import Probe
+from runtime.schema import EventMsg, Keys
+from tests.busutil import free_port, neso, peer, session, stop
+from tests.unit.helpers import velocity_feedback_network
+
+KEYS = Keys("uav1")
+
+
+def test_a_bad_network_promoted_by_force_is_rolled_back_by_the_canary(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rec_dir = tmp_path / "recordings"
+    proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", endpoint, "--no-dashboard",
+                "--no-trainer", "--recordings-dir", str(rec_dir), "--registry", str(tmp_path / "registry"))
+    bad = str(tmp_path / "bad.safetensors")
+    save_network(bad, velocity_feedback_network(-5.0))  # left alone, this one makes the hover diverge (README)
+    events: list[EventMsg] = []
+    try:
+        with session(peer(endpoint)) as s:
+            probe = Probe(s, topics=("truth", "reference", "estimate", "network"))
+            sub = s.declare_subscriber(KEYS.event("estimator"), lambda smp: events.append(
+                EventMsg.from_bytes(smp.payload.to_bytes())))
+            probe.wait_for("estimate", lambda m: m.warm_ticks > 600, 60.0)  # 12 s of hover: a window before
+            reply = command(s, KEYS, "estimator", "offer", {"path": bad}, timeout_s=5.0)
+            assert reply.ok, reply.message
+            refused = command(s, KEYS, "estimator", "promote", {}, timeout_s=5.0)
+            assert not refused.ok and "certificate FAILS" in refused.message, refused.message
+            reply = command(s, KEYS, "estimator", "promote", {"force": True}, timeout_s=5.0)
+            assert reply.ok and "by force" in reply.message, reply.message
+            promoted = probe.wait_for("estimate", lambda m: m.network_id == "velocity-feedback-5", 5.0).seq
+            back = probe.wait_for("estimate", lambda m: m.seq > promoted and m.network_id == "base", 15.0).seq
+            assert back - promoted <= 500, f"rolled back {back - promoted} samples after the promotion"
+            net = probe.wait_for("network", lambda m: "rolled back" in m.canary.get("last", ""), 5.0)
+            assert net.active["id"] == "base" and net.previous["id"] == "velocity-feedback-5"
+            time.sleep(2.0)
+            truth = {m.seq: m.pos_enu_m[2] for m in probe.get("truth")}
+            refs = {m.seq: m.pos_enu_m[2] for m in probe.get("reference")}
+            window = [k for k in truth if k in refs and promoted - 50 <= k <= back + 100]
+            worst = max(abs(truth[k] - refs[k]) for k in window)
+            assert len(window) > 100 and worst < 0.05, f"{worst * 100:.2f} cm from the reference"
+            text = next(e.text for e in events if "canary" in e.text and "rolled back" in e.text)
+            assert e_level(events, text) == "warning"
+            assert command(s, KEYS, "recorder", "stop", {}, timeout_s=5.0).ok
+            time.sleep(2.0)
+            sub.undeclare()
+            probe.close()
+    finally:
+        stop(proc, timeout_s=20)
+    files = glob.glob(os.path.join(str(rec_dir), "**", "*.rrd"), recursive=True)
+    recorded = [t for f in files for t in read_recording(f).channel("event/estimator").columns.get("text", [])]
+    assert any("canary" in t and "rolled back" in t for t in recorded), recorded[-5:]
+    assert any("by force" in t for t in recorded)
+    print(f"rolled back {back - promoted} samples after the forced promotion; worst |z error| {worst * 100:.2f} cm; "
+          f"{text}")
+
+
+def e_level(events: list[EventMsg], text: str) -> str:
+    return next(e.level for e in events if e.text == text)
