@@ -163,35 +163,46 @@ def read_recording(path: str | Path) -> Recording:
     return rec
 
 
+_ROW_ID = "rerun.controls.RowId"
+
+
 def _channel_columns(channel: str, batches: list) -> dict[str, object] | None:
     """Field → values of one channel's messages in publication order (row ids are monotonic);
-    None if a field is missing (not a channel this version wrote)."""
+    None if a field is missing (not a channel this version wrote). A flush writes a channel's fields in
+    one chunk, but a compacted file may hold them in several (Rerun splits a chunk by component, e.g. long
+    event texts apart from the rest): each field is gathered by row id from whichever chunks hold it."""
     cls = message_type(channel)
-    specs = fields_of(cls)
-    rows = [b for b in batches if component(cls, specs[0].name) in b.schema.names]  # not the TextLog chunks
-    if not rows:
-        return None
-    rowids = np.concatenate([np.array(b.column("rerun.controls.RowId").to_pylist(), dtype="S16") for b in rows])
-    order = np.argsort(rowids, kind="stable")
     out: dict[str, object] = {}
-    for spec in specs:
-        name = component(cls, spec.name)
-        if any(name not in b.schema.names for b in rows):
+    ids = None
+    for spec in fields_of(cls):
+        found = _component(batches, component(cls, spec.name), spec.kind)
+        if found is None:
             return None
-        flat = [b.column(name).flatten() for b in rows]
-        if spec.kind in ("number", "integer", "flag"):
-            values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat])
-            if spec.kind == "flag":
-                values = values.astype(bool)
-            out[spec.name] = values[order]
-        elif spec.kind == "vector":
-            values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat]).astype(float)
-            out[spec.name] = values.reshape(len(order), -1)[order]
-        else:
-            values = [v for f in flat for v in f.to_pylist()]
-            values = [values[i] for i in order]
-            out[spec.name] = [json.loads(v) for v in values] if spec.kind == "json" else values
+        rows, values = found
+        if ids is not None and not np.array_equal(rows, ids):
+            return None  # fields of different messages: not a channel this version wrote
+        ids = rows
+        out[spec.name] = values
     return out
+
+
+def _component(batches: list, name: str, kind: str):
+    """(row ids, values) of one component over every chunk holding it, in row-id order; None if none does."""
+    parts = [b for b in batches if name in b.schema.names]
+    if not parts:
+        return None
+    rowids = np.concatenate([np.array(b.column(_ROW_ID).to_pylist(), dtype="S16") for b in parts])
+    order = np.argsort(rowids, kind="stable")
+    flat = [b.column(name).flatten() for b in parts]
+    if kind in ("number", "integer", "flag"):
+        values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat])[order]
+        return rowids[order], (values.astype(bool) if kind == "flag" else values)
+    if kind == "vector":
+        values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat]).astype(float)
+        return rowids[order], values.reshape(len(order), -1)[order]
+    values = [v for f in flat for v in f.to_pylist()]
+    values = [values[i] for i in order]
+    return rowids[order], ([json.loads(v) for v in values] if kind == "json" else values)
 
 
 def rerun_cli() -> str:

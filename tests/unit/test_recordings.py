@@ -345,3 +345,21 @@ def test_a_recorder_that_cannot_write_reports_it_and_keeps_running(tmp_path):
     assert not thread.is_alive() and rec.errors >= 2 and reports and reports[0][0] == "error"
     assert "not-a-folder" in rec.last_error and rec.writer is None
     assert statuses and not statuses[-1].recording
+
+
+def test_a_compacted_file_that_split_a_channel_by_component_reads_back_whole(tmp_path, monkeypatch):
+    """`rerun rrd optimize` may store a channel's long texts in a chunk of their own (seen with the canary's
+    events); the reader gathers every field by row id."""
+    from recordings.reader import repair
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))  # the rerun CLI writes its analytics config there
+    w = FlightWriter(tmp_path / "events.rrd", vehicle="uav1", flight="uav1-test")
+    texts = [f"canary {k}: " + "→ z RMS 0.75 cm before, 2.27 cm after; " * 8 for k in range(4)]
+    for k, text in enumerate(texts):
+        w.add("event/estimator", EventMsg(stamp_s=100.0 + k, service="estimator", level="warning", text=text))
+        w.flush()
+    w.close()
+    repair(tmp_path / "events.rrd")
+    events = read_recording(tmp_path / "events.rrd").channel("event/estimator")
+    assert events.columns["text"] == texts and list(events.columns["level"]) == ["warning"] * 4
+    assert list(events.columns["stamp_s"]) == [100.0, 101.0, 102.0, 103.0]
