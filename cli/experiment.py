@@ -7,7 +7,8 @@ from pathlib import Path
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("experiment", help="reproduce the paper's experiments in simulation")
-    p.add_argument("name", choices=["paper"], help="which experiment set")
+    p.add_argument("name", choices=["paper", "aero"],
+                   help="paper: Section V; aero: Experiment 3's near-ground aerodynamics audited (sim/README.md)")
     p.add_argument("--trials", type=int, default=5, help="trials (seeds) per method (default 5)")
     p.add_argument("--json", type=Path, help="write the results in the documented JSON shape")
     p.add_argument("--details", type=Path, help="write settling times, network certificates and timings as JSON")
@@ -17,6 +18,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default 100, as the paper)")
     p.add_argument("--workers", type=int, default=0, help="flight processes (default: one per core)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rotor-aero", action="store_true",
+                   help="fly every flight with the literature's speed- and thrust-dependent rotor aerodynamics "
+                        "(sim.rotor_aero; off in the default world)")
 
 
 def run(args) -> int:
@@ -26,6 +30,12 @@ def run(args) -> int:
     from sim.report import format_comparisons, format_tables
 
     config = replace(PaperConfig(), trials=args.trials, workers=args.workers, seed=args.seed)
+    if args.rotor_aero:
+        from sim.aero_audit import LITERATURE_ROTOR_AERO
+
+        config = replace(config, sim_overrides=LITERATURE_ROTOR_AERO)
+    if args.name == "aero":
+        return _run_aero(config, args)
     if args.omega_o is not None:
         config = replace(config, omega_o_rps=args.omega_o)
     if args.epochs is not None:
@@ -53,4 +63,16 @@ def run(args) -> int:
 
         for path in write_plots(run_, config, args.plots):
             print(f"plot: {path}")
+    return 0
+
+
+def _run_aero(config, args) -> int:
+    from sim.aero_audit import format_aero, run_aero
+
+    result = run_aero(config)
+    print()
+    print(format_aero(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"results: {args.json}")
     return 0

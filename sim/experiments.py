@@ -52,6 +52,7 @@ class PaperConfig:
     settle_after_descent_s: float = 2.0  # steady-state window starts this long after the descent
     settling_band_m: float = 0.01
     seed: int = 0
+    sim_overrides: tuple[tuple[str, object], ...] = ()  # SimConfig fields replaced in every scenario
 
     def estimator_config(self) -> NeuralEsoConfig:
         return NeuralEsoConfig(eso=EsoConfig(omega_o_rps=self.omega_o_rps, dt_s=self.control.dt_s))
@@ -66,13 +67,14 @@ class FlightTask:
     trajectory: object
     estimator: NeuralEsoConfig
     control: ControlConfig
+    sim_overrides: tuple[tuple[str, object], ...] = ()  # SimConfig fields replaced in the scenario
 
 
 def run_flight(task: FlightTask) -> FlightLog:
     estimator = build_estimator(task.method, task.estimator, task.networks)
     return fly(
-        sim_config=make_scenario(task.scenario), estimator=estimator, trajectory=task.trajectory,
-        seed=task.seed, control=task.control,
+        sim_config=make_scenario(task.scenario, **dict(task.sim_overrides)), estimator=estimator,
+        trajectory=task.trajectory, seed=task.seed, control=task.control,
     )
 
 
@@ -83,10 +85,11 @@ class _Pool:
         self.workers = workers or os.cpu_count() or 1
         self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("fork")) if self.workers > 1 else None
 
-    def map(self, tasks: list[FlightTask]) -> list[FlightLog]:
+    def map(self, tasks: list, fn=run_flight) -> list:
+        """``fn`` (default ``run_flight``, a module-level function) over ``tasks``, in order."""
         if self._pool is None:
-            return [run_flight(t) for t in tasks]
-        return list(self._pool.map(run_flight, tasks))
+            return [fn(t) for t in tasks]
+        return list(self._pool.map(fn, tasks))
 
     def map_groups(self, groups: list[list[FlightTask]]) -> list[list[FlightLog]]:
         """Fly every group's tasks in one pool pass; the logs come back grouped as given."""
@@ -173,7 +176,8 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
     logs: dict = {}
 
     def tasks(scenario, method, networks, trajectory, trial_seeds=seeds):
-        return [FlightTask(scenario, method, networks, s, trajectory, est_cfg, config.control) for s in trial_seeds]
+        return [FlightTask(scenario, method, networks, s, trajectory, est_cfg, config.control, config.sim_overrides)
+                for s in trial_seeds]
 
     def tick(label, since):
         details["timing_s"][label] = round(time.perf_counter() - since, 3)

@@ -55,9 +55,11 @@ def fly(
     control: ControlConfig = ControlConfig(),
     duration_s: float | None = None,
     on_tick=None,
+    before_step=None,
 ) -> FlightLog:
     """Fly ``trajectory`` in a fresh simulator; ``on_tick(k, t_s, estimator)`` may change the
-    estimator between ticks (a pathway switch, a network swap)."""
+    estimator between ticks (a pathway switch, a network swap); ``before_step(k, sim, setpoint)``
+    sees the simulator just before it takes tick k's setpoint (it must not change it)."""
     duration_s = trajectory.duration_s if duration_s is None else duration_s
     dt = control.dt_s
     n = int(round(duration_s / dt))
@@ -73,6 +75,8 @@ def fly(
     t = np.full(n, np.nan)
     diverged, reason = False, ""
     for k in range(n):
+        if before_step is not None:
+            before_step(k, sim, out.setpoint)
         meas = sim.step(out.setpoint)
         truth = sim.truth
         t[k] = truth.t_s
