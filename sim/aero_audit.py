@@ -9,9 +9,10 @@ cycles only (t >= ``cycle_start_s``):
 - ``audit_effects``: each effect of the world switched off, and each candidate from the
   literature switched on, in the same seeds; the tick-by-tick difference of the true z
   disturbance ``FlightLog.f_true[:, 2]`` (truth, m/s^2) with and without it: mean, RMS, peak.
-- ``disturbance_predictability``: R^2 and residual RMS of f_true_z fitted on candidate network
-  inputs (as the network would measure them), by least squares and by a small MLP, held out
-  one seed at a time.
+- ``disturbance_predictability``: R^2 and residual RMS of the true z disturbance fitted on
+  candidate network inputs (as the network would measure them), by least squares and by a
+  small MLP, held out one seed at a time; the disturbance referenced to the command (f_true_z
+  as the simulator defines it) and to the applied thrust (``applied_referenced_f_z``).
 
 Pure computation over :mod:`sim.experiments` flights; ``neso experiment aero`` prints and
 writes it.
@@ -263,21 +264,45 @@ def _fit_mlp(x: np.ndarray, y: np.ndarray, x_test: np.ndarray, *, seed: int, epo
     return pred * ys + ym
 
 
+def applied_referenced_f_z(log: FlightLog, t_applied_n: np.ndarray, *, nominal_mass_kg: float,
+                           gravity_mps2: float = 9.81) -> np.ndarray:
+    """f_true_z moved from the command's reference to the applied thrust's: the z acceleration
+    that neither gravity nor the applied thrust along the measured attitude explains,
+    f_true_z + (a_cmd,z(k-1) + g) - T_applied cos(roll) cos(pitch) / m_nom (m/s^2, (N,); the first
+    element, which has no previous command, is NaN). What a lag-consistent label aims at."""
+    believed = np.full(len(log.t_s), np.nan)
+    believed[1:] = log.acc_cmd_mps2[:-1, 2] + gravity_mps2  # R_cmd e3 T_cmd / m_nom, z
+    applied = t_applied_n * np.cos(log.z[:, 3]) * np.cos(log.z[:, 4]) / nominal_mass_kg
+    return log.f_true[:, 2] + believed - applied
+
+
+TARGETS = ("command", "applied")
+
+
 def disturbance_predictability(logs: list[FlightLog], config: PaperConfig = PaperConfig(), *,
                                feature_sets: dict[str, tuple[str, ...]] = FEATURE_SETS,
-                               mlp_epochs: int = 40) -> dict:
-    """R^2 and residual RMS (m/s^2) of f_true_z fitted on each feature set, leave one flight
-    (seed) out, predictions pooled over the held-out flights. The thrust lag and delay for the
-    applied-thrust estimate are the world's (the identified values)."""
+                               mlp_epochs: int = 40, target: str = "command") -> dict:
+    """R^2 and residual RMS (m/s^2) of the true z disturbance fitted on each feature set, leave one
+    flight (seed) out, predictions pooled over the held-out flights. ``target``: ``command`` is
+    f_true_z as the simulator defines it (against the command the controller believes acts),
+    ``applied`` is ``applied_referenced_f_z``. The thrust lag and delay for the applied-thrust
+    estimate are the world's (the identified values)."""
+    if target not in TARGETS:
+        raise ValueError(f"unknown target {target!r}; known: {TARGETS}")
     cfg = make_scenario(SCENARIO)
     kw = {"lag_s": cfg.inner_loop.thrust_time_constant_s, "delay_s": cfg.command_delay_s, "dt_s": config.control.dt_s}
     per_flight = []
     for log in logs:
         k = _window(log, config)
+        k[0] = False
         inputs = candidate_inputs(log, **kw)
-        per_flight.append(({name: v[k] for name, v in inputs.items()}, log.f_true[k, 2]))
+        y = log.f_true[:, 2] if target == "command" else applied_referenced_f_z(
+            log, inputs["T_applied"], nominal_mass_kg=config.control.vehicle.mass_kg,
+            gravity_mps2=config.control.vehicle.gravity_mps2)
+        per_flight.append(({name: v[k] for name, v in inputs.items()}, y[k]))
     y_all = np.concatenate([y for _, y in per_flight])
-    out = {"samples": int(len(y_all)), "flights": len(per_flight), "f_true_z_std": float(np.std(y_all)), "fits": []}
+    out = {"target": target, "samples": int(len(y_all)), "flights": len(per_flight),
+           "f_z_std_mps2": float(np.std(y_all)), "fits": []}
     for label, names in feature_sets.items():
         preds = {"linear": [], "mlp": []}
         for i, (held_x, _) in enumerate(per_flight):
@@ -315,7 +340,8 @@ def run_aero(config: PaperConfig = PaperConfig(), *, log=print) -> dict:
     finally:
         pool.close()
     log("fitting f_true_z on candidate inputs (least squares and MLP, leave one seed out)")
-    predict = {name: disturbance_predictability(logs, config) for name, logs in flights.items()}
+    predict = {f"{name}, {target} reference": disturbance_predictability(logs, config, target=target)
+               for target in TARGETS for name, logs in flights.items()}
     return {"audit": audit, "predictability": predict,
             "literature_rotor_aero": {name: type(part).__name__ for name, part in LITERATURE_ROTOR_AERO}}
 
@@ -337,8 +363,8 @@ def format_aero(result: dict) -> str:
         lines.append(f"  {e['effect'][:48]:48s}  {'yes' if e['in_world'] else 'no ':8s}  {d['mean']:+.3f}   {d['rms']:.3f}    "
                      f"{d['peak']:.3f}          {e['z_rmse_cm']['with']:.2f} / {e['z_rmse_cm']['without']:.2f}")
     for name, p in result["predictability"].items():
-        lines += ["", f"f_true_z on candidate inputs, {name}: {p['samples']} samples, {p['flights']} flights "
-                      f"(one held out at a time), std {p['f_true_z_std']:.3f} m/s^2",
+        lines += ["", f"true z disturbance on candidate inputs, {name}: {p['samples']} samples, {p['flights']} "
+                      f"flights (one held out at a time), std {p['f_z_std_mps2']:.3f} m/s^2",
                   "  inputs                                   least squares R^2 / resid RMS   MLP R^2 / resid RMS"]
         for row in p["fits"]:
             lin, mlp = row["linear"], row["mlp"]

@@ -9,6 +9,9 @@ with ``g = (0, 0, -9.81)``, ``F^B = (0, 0, sum_i T_i)`` and ``d`` = rotor drag o
 velocity (gusts enter here) + ground contact. The rotor thrusts ``T_i`` come from a PX4-like inner
 loop (attitude P -> body-rate P -> moments, first-order actuator lags, per-rotor allocation with
 saturation) and are multiplied per rotor by the ground-effect ratio at that rotor's height.
+Optional rotor aerodynamics (``sim.rotor_aero``, chosen on ``SimConfig``, off by default) scale
+the rotor drag with the rotors' thrust, add translational lift along body z, and wash the
+ground effect out with edgewise speed.
 
 The truth differs from the controller's nominal model (mass 1.0 kg, hover thrust_norm 0.5,
 thrust linear in the command, no delay): true mass 1.05 kg, thrust = thrust_norm * max thrust *

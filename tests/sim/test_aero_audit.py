@@ -69,3 +69,26 @@ def test_audit_measures_the_ground_effect_and_a_candidate_on_the_lemniscate():
     # k_h 0.0051 1/m, air speed up to ~3 m/s (gusts included): a few hundredths of a m/s^2, upward
     assert not lift["in_world"] and 0.0 < lift["delta_f_z_mps2"]["mean"] < 0.03
     assert lift["delta_f_z_mps2"]["peak"] < 0.15
+
+
+def test_applied_reference_removes_the_echo_of_the_command_through_delay_and_lag():
+    """A world whose only mismatch with the controller's model is the command delay and the thrust
+    lag (noisy mocap makes the command jitter): f_true_z is that jitter's echo; referenced to the
+    applied thrust it all but vanishes."""
+    from sim.aero_audit import applied_referenced_f_z
+    from sim.experiments import FlightTask, run_flight
+    from sim.scenarios import make_scenario
+
+    cfg = PaperConfig()
+    base = make_scenario("lemniscate_near_ground")
+    ideal = (("params", replace(base.params, mass_kg=1.0, drag_coeff_per_s=(0.0, 0.0, 0.0), battery_sag_per_min=0.0)),
+             ("ground_effect", NoGroundEffect()), ("turbulence", NO_TURBULENCE),
+             ("inner_loop", replace(base.inner_loop, rotor_thrust_limits=False)))
+    log = run_flight(FlightTask("lemniscate_near_ground", "pd_eso", {}, 1, cfg.lemniscate, cfg.estimator_config(),
+                                cfg.control, ideal))
+    t_app = applied_thrust_n(log.thrust_n, lag_s=base.inner_loop.thrust_time_constant_s,
+                             delay_s=base.command_delay_s, dt_s=cfg.control.dt_s)
+    f_applied = applied_referenced_f_z(log, t_app, nominal_mass_kg=1.0)
+    k = log.t_s > cfg.lemniscate.cycle_start_s
+    assert np.std(log.f_true[k, 2]) > 0.2
+    assert np.std(f_applied[k]) < 0.1 * np.std(log.f_true[k, 2])
