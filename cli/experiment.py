@@ -34,12 +34,12 @@ def run(args) -> int:
         from sim.aero_audit import LITERATURE_ROTOR_AERO
 
         config = replace(config, sim_overrides=LITERATURE_ROTOR_AERO)
-    if args.name == "aero":
-        return _run_aero(config, args)
     if args.omega_o is not None:
         config = replace(config, omega_o_rps=args.omega_o)
     if args.epochs is not None:
         config = replace(config, epochs=args.epochs)
+    if args.name == "aero":
+        return _run_aero(config, args)
     run_ = run_paper(config)
     print()
     print(format_tables(run_.results, run_.details))

@@ -7,8 +7,11 @@ Lemniscate, 5 full cycles) under PD+ESO with the paper's trial seeds and look at
 cycles only (t >= ``cycle_start_s``):
 
 - ``audit_effects``: each effect of the world switched off, and each candidate from the
-  literature switched on, in the same seeds; the tick-by-tick difference of the true z
-  disturbance ``FlightLog.f_true[:, 2]`` (truth, m/s^2) with and without it: mean, RMS, peak.
+  literature switched on. Along the flown trajectory: at every tick the state is branched into
+  the other world (``QuadrotorSim.branch``) and stepped with the same setpoint; the effect's
+  contribution to the true z disturbance ``FlightLog.f_true[:, 2]`` (truth, m/s^2) is the
+  difference, same state and random draws: mean, RMS, peak. In closed loop: the same seeds
+  flown in the other world, pd_eso z RMSE with and without.
 - ``disturbance_predictability``: R^2 and residual RMS of the true z disturbance fitted on
   candidate network inputs (as the network would measure them), by least squares and by a
   small MLP, held out one seed at a time; the disturbance referenced to the command (f_true_z

@@ -585,7 +585,7 @@ class QuadrotorSim:
                     g1 = ratio(dist(px - hx0, py - hy0, pz - hz0), rr, arm)
                     g2 = ratio(dist(px + hx2, py + hy2, pz + hz2), rr, arm)
                     g3 = ratio(dist(px - hx2, py - hy2, pz - hz2), rr, arm)
-                if use_washout:
+                if use_washout:  # rotor_aero.washed_out_ratio, inlined
                     w = washout_weight(edgewise_sq, v_i)
                     g0 = 1.0 / (1.0 - (1.0 - 1.0 / g0) * w)
                     g1 = 1.0 / (1.0 - (1.0 - 1.0 / g1) * w)
