@@ -7,7 +7,8 @@ from pathlib import Path
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("experiment", help="reproduce the paper's experiments in simulation")
-    p.add_argument("name", choices=["paper"], help="which experiment set")
+    p.add_argument("name", choices=["paper", "aero"],
+                   help="paper: Section V; aero: Experiment 3's near-ground aerodynamics audited (sim/README.md)")
     p.add_argument("--trials", type=int, default=5, help="trials (seeds) per method (default 5)")
     p.add_argument("--json", type=Path, help="write the results in the documented JSON shape")
     p.add_argument("--details", type=Path, help="write settling times, network certificates and timings as JSON")
@@ -20,6 +21,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--recipes", default=None,
                    help="comma-separated recipes flown side by side, the first reported first "
                         "(default: certified,paper; see neso/learning.py)")
+    p.add_argument("--rotor-aero", action="store_true",
+                   help="fly every flight with the literature's speed- and thrust-dependent rotor aerodynamics "
+                        "(sim.rotor_aero; off in the default world)")
 
 
 def run(args) -> int:
@@ -37,10 +41,16 @@ def run(args) -> int:
             print(f"neso experiment: unknown recipe(s) {unknown}; known: {sorted(RECIPES)}")
             return 2
         config = replace(config, recipes=names)
+    if args.rotor_aero:
+        from sim.aero_audit import LITERATURE_ROTOR_AERO
+
+        config = replace(config, sim_overrides=LITERATURE_ROTOR_AERO)
     if args.omega_o is not None:
         config = replace(config, omega_o_rps=args.omega_o)
     if args.epochs is not None:
         config = replace(config, epochs=args.epochs)
+    if args.name == "aero":
+        return _run_aero(config, args)
     run_ = run_paper(config)
     for name, rec in run_.by_recipe.items():
         print()
@@ -68,4 +78,16 @@ def run(args) -> int:
 
         for path in write_plots(run_, config, args.plots):
             print(f"plot: {path}")
+    return 0
+
+
+def _run_aero(config, args) -> int:
+    from sim.aero_audit import format_aero, run_aero
+
+    result = run_aero(config)
+    print()
+    print(format_aero(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"results: {args.json}")
     return 0

@@ -60,6 +60,7 @@ class PaperConfig:
     settle_after_descent_s: float = 2.0  # steady-state window starts this long after the descent
     settling_band_m: float = 0.01
     seed: int = 0
+    sim_overrides: tuple[tuple[str, object], ...] = ()  # SimConfig fields replaced in every scenario
 
     def estimator_config(self) -> NeuralEsoConfig:
         return NeuralEsoConfig(eso=EsoConfig(omega_o_rps=self.omega_o_rps, dt_s=self.control.dt_s))
@@ -78,13 +79,14 @@ class FlightTask:
     trajectory: object
     estimator: NeuralEsoConfig
     control: ControlConfig
+    sim_overrides: tuple[tuple[str, object], ...] = ()  # SimConfig fields replaced in the scenario
 
 
 def run_flight(task: FlightTask) -> FlightLog:
     estimator = build_estimator(task.method, task.estimator, task.networks)
     return fly(
-        sim_config=make_scenario(task.scenario), estimator=estimator, trajectory=task.trajectory,
-        seed=task.seed, control=task.control,
+        sim_config=make_scenario(task.scenario, **dict(task.sim_overrides)), estimator=estimator,
+        trajectory=task.trajectory, seed=task.seed, control=task.control,
     )
 
 
@@ -95,10 +97,11 @@ class _Pool:
         self.workers = workers or os.cpu_count() or 1
         self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("fork")) if self.workers > 1 else None
 
-    def map(self, tasks: list[FlightTask]) -> list[FlightLog]:
+    def map(self, tasks: list, fn=run_flight) -> list:
+        """``fn`` (default ``run_flight``, a module-level function) over ``tasks``, in order."""
         if self._pool is None:
-            return [run_flight(t) for t in tasks]
-        return list(self._pool.map(run_flight, tasks))
+            return [fn(t) for t in tasks]
+        return list(self._pool.map(fn, tasks))
 
     def map_groups(self, groups: list[list[FlightTask]]) -> list[list[FlightLog]]:
         """Fly every group's tasks in one pool pass; the logs come back grouped as given."""
@@ -215,8 +218,8 @@ class _Flights:
         self._since = time.perf_counter()
 
     def tasks(self, scenario, method, networks, trajectory, seeds=None) -> list[FlightTask]:
-        return [FlightTask(scenario, method, networks, s, trajectory, self.est_cfg, self.config.control)
-                for s in (self.seeds if seeds is None else seeds)]
+        return [FlightTask(scenario, method, networks, s, trajectory, self.est_cfg, self.config.control,
+                           self.config.sim_overrides) for s in (self.seeds if seeds is None else seeds)]
 
     def tick(self, label: str) -> None:
         now = time.perf_counter()

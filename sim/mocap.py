@@ -16,6 +16,7 @@ samples are taken and which one is handed over. Seeded by the ``numpy.random.Gen
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -67,6 +68,15 @@ class MocapFilter:
         self._a = math.exp(-2.0 * math.pi * config.vel_cutoff_hz * self._period_s)
         self._prev_pos: tuple[float, float, float] | None = None
         self._vel = [0.0, 0.0, 0.0]
+
+    def copy(self) -> "MocapFilter":
+        """An independent filter in this one's state (same noise stream from here on)."""
+        twin = object.__new__(MocapFilter)
+        for name in MocapFilter.__slots__:
+            setattr(twin, name, getattr(self, name))
+        twin._rng = copy.deepcopy(self._rng)
+        twin._vel = list(self._vel)
+        return twin
 
     def reset(self, vel_enu_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
         """Forget the previous sample; the velocity filter starts at ``vel_enu_mps``."""

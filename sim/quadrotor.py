@@ -9,6 +9,9 @@ with ``g = (0, 0, -9.81)``, ``F^B = (0, 0, sum_i T_i)`` and ``d`` = rotor drag o
 velocity (gusts enter here) + ground contact. The rotor thrusts ``T_i`` come from a PX4-like inner
 loop (attitude P -> body-rate P -> moments, first-order actuator lags, per-rotor allocation with
 saturation) and are multiplied per rotor by the ground-effect ratio at that rotor's height.
+Optional rotor aerodynamics (``sim.rotor_aero``, chosen on ``SimConfig``, off by default) scale
+the rotor drag with the rotors' thrust, add translational lift along body z, and wash the
+ground effect out with edgewise speed.
 
 The truth differs from the controller's nominal model (mass 1.0 kg, hover thrust_norm 0.5,
 thrust linear in the command, no delay): true mass 1.05 kg, thrust = thrust_norm * max thrust *
@@ -21,6 +24,7 @@ attitude renormalised every sub-step; the sub-step is written with plain Python 
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections import deque
@@ -32,6 +36,15 @@ from neso.rotations import world_from_body_zyx
 from neso.types import GRAVITY_MPS2, AttitudeSetpoint, StateMeasurement
 from sim.ground_effect import ExponentialGroundEffect, GroundEffectModel, NoGroundEffect
 from sim.mocap import MocapConfig, MocapFilter, MocapSample
+from sim.rotor_aero import (
+    ConstantRotorDrag,
+    GroundEffectWashout,
+    NoTranslationalLift,
+    NoWashout,
+    RotorDragScaling,
+    TranslationalLift,
+    hover_induced_velocity_mps,
+)
 from sim.terrain import FlatGround, Terrain
 from sim.turbulence import MILD_TURBULENCE, DrydenGusts, TurbulenceConfig
 
@@ -89,6 +102,12 @@ class QuadrotorParams:
         """True normalised hover thrust out of ground effect with a full battery."""
         return self.mass_kg * GRAVITY_MPS2 / self.max_thrust_n
 
+    @property
+    def hover_induced_velocity_mps(self) -> float:
+        """Momentum-theory induced velocity of one rotor in hover (9.11 m/s), the speed scale
+        of the edgewise-flow effects in ``sim.rotor_aero``."""
+        return hover_induced_velocity_mps(self.mass_kg, self.rotor_radius_m)
+
 
 @dataclass(frozen=True, slots=True)
 class InnerLoopParams:
@@ -105,6 +124,9 @@ class InnerLoopParams:
     MC_ROLLRATE_MAX / MC_PITCHRATE_MAX / MC_YAWRATE_MAX defaults. ``torque_time_constant_s``
     0.005: motor lag seen by the moments (assumed; small brushless motors, 5-20 ms).
     ``thrust_time_constant_s`` 0.0448: Neural-Lander's u <- 0.8u + 0.2u_d at 100 Hz.
+    ``rotor_thrust_limits`` (True): each rotor's thrust is clipped to [0, max/4] after the
+    allocation, with no desaturation; False lifts the limits (an audit switch: what the
+    clipping costs, not a physical vehicle).
     """
 
     attitude_p_per_s: tuple[float, float, float] = (22.0, 22.0, 5.0)
@@ -113,6 +135,7 @@ class InnerLoopParams:
     max_rate_rps: tuple[float, float, float] = (math.radians(220.0), math.radians(220.0), math.radians(200.0))
     torque_time_constant_s: float = 0.005
     thrust_time_constant_s: float = _NEURAL_LANDER_LAG_S
+    rotor_thrust_limits: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +147,13 @@ class SimConfig:
     10 ms mocap latency it makes the ~20 ms loop delay of DESIGN.md). All three (and the mocap
     period and latency) must be integer multiples of ``dt_s``. ``reference_height_m`` is
     informational for experiments (the scenario's target height; paper: 0.1 m landing).
+
+    Rotor aerodynamics (``sim.rotor_aero``): ``rotor_drag`` scales the linear rotor drag with
+    the rotors' thrust, ``translational_lift`` adds thrust with edgewise speed,
+    ``ground_effect_washout`` weakens the ground effect with it. ``ground_effect_per_rotor``
+    (default True) evaluates the ground effect at each rotor hub's own height, so tilt and a
+    slope change it; False evaluates every rotor at the body origin's height (an audit switch:
+    ground effect without its attitude dependence).
     """
 
     params: QuadrotorParams = field(default_factory=QuadrotorParams)
@@ -132,6 +162,10 @@ class SimConfig:
     control_period_s: float = 0.02
     command_delay_s: float = 0.010
     ground_effect: GroundEffectModel = field(default_factory=ExponentialGroundEffect)
+    ground_effect_washout: GroundEffectWashout = field(default_factory=NoWashout)
+    ground_effect_per_rotor: bool = True
+    rotor_drag: RotorDragScaling = field(default_factory=ConstantRotorDrag)
+    translational_lift: TranslationalLift = field(default_factory=NoTranslationalLift)
     terrain: Terrain = field(default_factory=FlatGround)
     turbulence: TurbulenceConfig = MILD_TURBULENCE
     mocap: MocapConfig = field(default_factory=MocapConfig)
@@ -302,6 +336,26 @@ class QuadrotorSim:
         self._advance(self._n_sub)
         return self._measurement()
 
+    def branch(self, config: SimConfig) -> "QuadrotorSim":
+        """A copy of this simulator in its current state (time, vehicle, lags, commands in
+        flight, random streams) that continues under ``config``: the world's physics may differ
+        (vehicle, inner loop, ground effect, rotor aerodynamics, terrain, gust intensity, command
+        delay), its timing may not (``dt_s``, ``control_period_s``, mocap rate and latency raise
+        ``ValueError``). Both continue from the same state, so one step of each with the same
+        setpoint measures what the difference between the worlds does there."""
+        old = self.config
+        if (config.dt_s, config.control_period_s, config.mocap.rate_hz, config.mocap.latency_s) != (
+                old.dt_s, old.control_period_s, old.mocap.rate_hz, old.mocap.latency_s):
+            raise ValueError("a branch keeps the simulator's timing (dt_s, control_period_s, mocap rate and latency)")
+        twin = copy.copy(self)  # the state lists are replaced, never mutated, by _advance
+        twin.config = config
+        twin._delay_ticks = _ticks(config.command_delay_s, config.dt_s, "command_delay_s")
+        twin._pending = deque(self._pending)
+        twin._samples = deque(self._samples, maxlen=self._samples.maxlen)
+        twin._gusts = self._gusts.reconfigured(config.turbulence)
+        twin._mocap = self._mocap.copy()
+        return twin
+
     @property
     def truth(self) -> TruthState:
         """The true state now (see ``TruthState`` for the disturbance definition)."""
@@ -346,6 +400,8 @@ class QuadrotorSim:
         cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
         total = 0.0
         for bx, by in ((a, a), (-a, -a), (a, -a), (-a, a)):
+            if not self.config.ground_effect_per_rotor:
+                bx = by = 0.0
             h = dist(x + cy * bx - sy * by, y + sy * bx + cy * by, z)
             total += ge.thrust_ratio(h, p.rotor_radius_m, p.arm_length_m)
         return 0.25 * total
@@ -424,6 +480,16 @@ class QuadrotorSim:
         ge = cfg.ground_effect
         use_ge = not isinstance(ge, NoGroundEffect)
         ratio = ge.thrust_ratio
+        a_ge = a if cfg.ground_effect_per_rotor else 0.0  # hub offset seen by the ground effect
+        v_i = p.hover_induced_velocity_mps
+        use_washout = use_ge and not isinstance(cfg.ground_effect_washout, NoWashout)
+        washout_weight = cfg.ground_effect_washout.weight
+        scale_drag = not isinstance(cfg.rotor_drag, ConstantRotorDrag)
+        drag_factor = cfg.rotor_drag.factor
+        f_hover = 0.25 * m * g
+        k_h = cfg.translational_lift.k_h_per_m(v_i)
+        limits = il.rotor_thrust_limits
+        f_min = 0.0 if limits else -math.inf
         gust_step = self._gusts.step
         mocap_ticks = self._mocap_ticks
         pending = self._pending
@@ -487,7 +553,7 @@ class QuadrotorSim:
             t_act += c_t * (tn * t_max * batt - t_act)
             # --- allocation (X quad), per-rotor saturation
             # rotors: 0 (+a,+a) ccw-ish c=+1, 1 (-a,-a) c=+1, 2 (+a,-a) c=-1, 3 (-a,+a) c=-1
-            f_max = 0.25 * t_max * batt
+            f_max = 0.25 * t_max * batt if limits else math.inf
             tq = 0.25 * t_act
             mxa = mx_act * inv4a
             mya = my_act * inv4a
@@ -496,30 +562,45 @@ class QuadrotorSim:
             f1 = tq - mxa + mya + mza
             f2 = tq - mxa - mya - mza
             f3 = tq + mxa + mya - mza
-            f0 = 0.0 if f0 < 0.0 else (f_max if f0 > f_max else f0)
-            f1 = 0.0 if f1 < 0.0 else (f_max if f1 > f_max else f1)
-            f2 = 0.0 if f2 < 0.0 else (f_max if f2 > f_max else f2)
-            f3 = 0.0 if f3 < 0.0 else (f_max if f3 > f_max else f3)
+            f0 = f_min if f0 < f_min else (f_max if f0 > f_max else f0)
+            f1 = f_min if f1 < f_min else (f_max if f1 > f_max else f1)
+            f2 = f_min if f2 < f_min else (f_max if f2 > f_max else f2)
+            f3 = f_min if f3 < f_min else (f_max if f3 > f_max else f3)
+            # --- gusts and the air-relative velocity, body frame
+            h_terrain = pz if flat else pz - terrain_height(px, py)
+            gwx, gwy, gwz = gust_step(h_terrain, math.sqrt(vx * vx + vy * vy))
+            rx, ry, rz = vx - gwx, vy - gwy, vz - gwz
+            bvx = r00 * rx + r10 * ry + r20 * rz
+            bvy = r01 * rx + r11 * ry + r21 * rz
+            bvz = r02 * rx + r12 * ry + r22 * rz
+            edgewise_sq = bvx * bvx + bvy * bvy
+            drag_scale = drag_factor(f0, f1, f2, f3, f_hover) if scale_drag else 1.0
             # --- ground effect per rotor (height = perpendicular distance to terrain)
             if use_ge:
                 # hub offsets in world: R (+-a, +-a, 0)
-                hz0 = r20 * a + r21 * a
-                hz2 = r20 * a - r21 * a
+                hz0 = r20 * a_ge + r21 * a_ge
+                hz2 = r20 * a_ge - r21 * a_ge
                 if flat:
                     g0 = ratio(pz + hz0, rr, arm)
                     g1 = ratio(pz - hz0, rr, arm)
                     g2 = ratio(pz + hz2, rr, arm)
                     g3 = ratio(pz - hz2, rr, arm)
                 else:
-                    hx0 = r00 * a + r01 * a
-                    hy0 = r10 * a + r11 * a
-                    hx2 = r00 * a - r01 * a
-                    hy2 = r10 * a - r11 * a
+                    hx0 = r00 * a_ge + r01 * a_ge
+                    hy0 = r10 * a_ge + r11 * a_ge
+                    hx2 = r00 * a_ge - r01 * a_ge
+                    hy2 = r10 * a_ge - r11 * a_ge
                     dist = terrain_distance
                     g0 = ratio(dist(px + hx0, py + hy0, pz + hz0), rr, arm)
                     g1 = ratio(dist(px - hx0, py - hy0, pz - hz0), rr, arm)
                     g2 = ratio(dist(px + hx2, py + hy2, pz + hz2), rr, arm)
                     g3 = ratio(dist(px - hx2, py - hy2, pz - hz2), rr, arm)
+                if use_washout:  # rotor_aero.washed_out_ratio, inlined
+                    w = washout_weight(edgewise_sq, v_i)
+                    g0 = 1.0 / (1.0 - (1.0 - 1.0 / g0) * w)
+                    g1 = 1.0 / (1.0 - (1.0 - 1.0 / g1) * w)
+                    g2 = 1.0 / (1.0 - (1.0 - 1.0 / g2) * w)
+                    g3 = 1.0 / (1.0 - (1.0 - 1.0 / g3) * w)
                 f_oge = f0 + f1 + f2 + f3
                 f0 *= g0
                 f1 *= g1
@@ -532,14 +613,19 @@ class QuadrotorSim:
             mx = a * (f0 - f1 - f2 + f3)
             my = -a * (f0 - f1 + f2 - f3)
             mz = kq * (f0 + f1 - f2 - f3)
-            # --- gusts and drag on the air-relative velocity
-            h_terrain = pz if flat else pz - terrain_height(px, py)
-            gwx, gwy, gwz = gust_step(h_terrain, math.sqrt(vx * vx + vy * vy))
-            rx, ry, rz = vx - gwx, vy - gwy, vz - gwz
-            dbx = -dx * (r00 * rx + r10 * ry + r20 * rz)
-            dby = -dy * (r01 * rx + r11 * ry + r21 * rz)
-            dbz = -dz * (r02 * rx + r12 * ry + r22 * rz)
+            # --- rotor drag on the air-relative velocity, translational lift
+            if scale_drag:
+                dbx = -(dx * drag_scale) * bvx
+                dby = -(dy * drag_scale) * bvy
+                dbz = -(dz * drag_scale) * bvz
+            else:
+                dbx = -dx * bvx
+                dby = -dy * bvy
+                dbz = -dz * bvz
             tm = thrust / m
+            if k_h:
+                tm += k_h * edgewise_sq
+                thrust = tm * m
             ax = r02 * tm + r00 * dbx + r01 * dby + r02 * dbz
             ay = r12 * tm + r10 * dbx + r11 * dby + r12 * dbz
             az = r22 * tm + r20 * dbx + r21 * dby + r22 * dbz - g

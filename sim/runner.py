@@ -79,10 +79,13 @@ def fly(
     duration_s: float | None = None,
     on_tick=None,
     plant=None,
+    before_step=None,
 ) -> FlightLog:
     """Fly ``trajectory`` in a fresh simulator of ``sim_config`` (or in ``plant``, any object with the
     simulator's ``reset``/``step``/``truth`` interface, e.g. :class:`sim.counterfactual.RecordedWorld`);
-    ``on_tick(k, t_s, estimator)`` may change the estimator between ticks (a pathway switch, a network swap)."""
+    ``on_tick(k, t_s, estimator)`` may change the estimator between ticks (a pathway switch, a network swap);
+    ``before_step(k, sim, setpoint)`` sees the simulator just before it takes tick k's setpoint (it must not
+    change it)."""
     duration_s = trajectory.duration_s if duration_s is None else duration_s
     dt = control.dt_s
     n = int(round(duration_s / dt))
@@ -99,6 +102,8 @@ def fly(
     t = np.full(n, np.nan)
     diverged, reason = False, ""
     for k in range(n):
+        if before_step is not None:
+            before_step(k, sim, out.setpoint)
         meas = sim.step(out.setpoint)
         truth = sim.truth
         t[k] = truth.t_s

@@ -24,6 +24,7 @@ force through the linear (rotor) drag on the relative air velocity ``v - w`` (se
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -92,6 +93,20 @@ class DrydenGusts:
             self._xi = [float(v) for v in rng.standard_normal(3)]
         else:
             self._xi = [0.0, 0.0, 0.0]
+
+    def reconfigured(self, config: TurbulenceConfig) -> "DrydenGusts":
+        """This generator, in its current state, with the intensity of ``config`` (same
+        correlation times required; a disabled config gives zero gusts from now on)."""
+        if config.enabled and (config.tau_horizontal_s, config.tau_vertical_s) != (
+                self._cfg.tau_horizontal_s, self._cfg.tau_vertical_s):
+            raise ValueError("reconfigured gusts keep their correlation times")
+        twin = object.__new__(DrydenGusts)
+        for name in DrydenGusts.__slots__:
+            setattr(twin, name, getattr(self, name))
+        twin._cfg = config
+        twin._xi = list(self._xi)
+        twin._rng = copy.deepcopy(self._rng)  # the same stream from here, not shared
+        return twin
 
     def step(self, height_m: float, speed_mps: float) -> tuple[float, float, float]:
         cfg = self._cfg
