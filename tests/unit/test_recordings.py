@@ -141,11 +141,13 @@ def test_eso_training_set_has_the_network_input_and_x3_label_and_skips_cold_grou
     # warm after 25 samples (0.5 s at 50 Hz), airborne from 40, thrust until 179
     keep = [k for k, m in enumerate(est) if m.warm_ticks >= 25 and 40 <= k < 180]
     assert len(ts) == len(keep) == 140
-    # the default inputs, rebuilt from the recorded states whatever network flew: [p_z, v_z, roll, pitch, v_xy]
-    assert ts.feature_set == DEFAULT_FEATURE_SET == "state_speed@1"
+    # inputs rebuilt from the recorded states whatever network flew: [p_z, v_z, roll, pitch, v_xy]
+    speed = load_training_set(tmp_path / "eso.rrd", "eso", skip_s=0.5, feature_set_key="state_speed@1")
+    assert speed.feature_set == "state_speed@1"
     expected_z = [(states[k].pos_enu_m[2], states[k].vel_enu_mps[2], states[k].roll_rad, states[k].pitch_rad,
                    np.hypot(*states[k].vel_enu_mps[:2])) for k in keep]
-    np.testing.assert_array_equal(ts.z, np.array(expected_z))
+    np.testing.assert_array_equal(speed.z, np.array(expected_z))
+    assert ts.feature_set == DEFAULT_FEATURE_SET and ts.z.shape == (140, feature_set(DEFAULT_FEATURE_SET).size)
     np.testing.assert_array_equal(ts.y_mps2, np.array([est[k].f_hat_mps2[2] for k in keep]))
     assert ts.label == "eso" and ts.vehicle == "uav1" and ts.recordings == (str(tmp_path / "eso.rrd"),)
     paper = load_training_set(tmp_path / "eso.rrd", "eso", feature_set_key="paper@1")
