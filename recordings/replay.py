@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recordings.offline import run_estimator, sample_period_s
 from recordings.reader import Recording, RecordingError, read_recording, rerun_cli
 from runtime.schema import Keys, Message, StateMsg
 
@@ -149,7 +150,8 @@ class Comparison:
 
 def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Comparison:
     """Run the estimator service's step object with ``change`` on the recorded states and setpoints
-    (in their recorded arrival order) and compare its f̂ with the recorded one."""
+    (in their recorded arrival order, :func:`recordings.offline.run_estimator`) and compare its f̂
+    with the recorded one."""
     from services.estimator import DEFAULT_NETWORK, EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
 
     states, setpoints = rec.channel("state").messages(), rec.channel("setpoint").messages()
@@ -158,26 +160,25 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
         raise RecordingError(f"{rec.path}: needs recorded states and estimates")
     recorded = rec.properties.get("params", {}).get("estimator", {})
     recorded = recorded if isinstance(recorded, dict) else {}
-    t = np.array([m.t_s for m in states])
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.02
+    dt = sample_period_s([m.t_s for m in states])
     pathway = change.pathway or recorded.get("pathway") or states and next(iter(flown.values())).pathway
     config = EstimatorConfig(network=change.network if change.network is not None else DEFAULT_NETWORK,
                              pathway=pathway, omega_o_rps=change.omega_o_rps or 15.0, dt_s=dt)
     network, source = load_flown_network(config.network)
     choice = NetworkChoice(network, source, config.network_dir)
-    core = EstimatorCore(config, network, choice)
     bound = change.lipschitz_bound if change.lipschitz_bound is not None else recorded.get("lipschitz_bound")
     if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound):
         refusal = choice.refusal(float(bound))
         if refusal:
             raise ValueError(refusal)
-        core.apply({"lipschitz_bound": float(bound)})
-    events = sorted([(m.stamp_s, 1, m) for m in states] + [(m.stamp_s, 0, m) for m in setpoints], key=lambda e: (e[0], e[1]))
-    ours = {}
-    for _, kind, msg in events:
-        outputs = core.on_state(msg, 0.0) if kind == 1 else core.on_setpoint(msg, 0.0)
-        for est in outputs:
-            ours[est.seq] = est
+
+    def make_core(dt_s: float) -> EstimatorCore:
+        core = EstimatorCore(dataclasses.replace(config, dt_s=dt_s), network, choice)
+        if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound):
+            core.apply({"lipschitz_bound": float(bound)})
+        return core
+
+    ours = run_estimator(states, setpoints, make_core)
     common = sorted(s for s in set(ours) & set(flown) if ours[s].warm_ticks * dt >= skip_s)
     if not common:
         raise RecordingError(f"{rec.path}: no sample where both estimates are warm")
