@@ -1,8 +1,9 @@
 """``neso train``: ask a vehicle's trainer to train on recordings, wait for the result, optionally promote.
 
-    neso train [FILE.rrd ...] [--label tdr|eso] [--lipschitz L_N] [--epochs N] [--no-offer] [--promote]
+    neso train [FILE.rrd|FILE.ulg ...] [--label tdr|eso] [--lipschitz L_N] [--epochs N] [--no-offer] [--promote]
 
-Sends ``train`` to ``neso/<v>/cmd/trainer`` and waits for that job's ``done``/``failed`` event;
+A PX4 log (``.ulg``) is imported first (``neso recordings import``, into ``--import-dir``, under
+``--vehicle``) and the recording it becomes is trained on. Sends ``train`` to ``neso/<v>/cmd/trainer`` and waits for that job's ``done``/``failed`` event;
 with ``--promote`` (after a passed offer and ``--shadow`` seconds in shadow) sends ``promote`` to
 the estimator. Exit 0 when everything asked for happened, 1 otherwise (the reason is printed).
 """
@@ -14,11 +15,13 @@ import time
 import uuid
 
 from cli.busargs import add_bus_arguments, bus_from_args
+from cli.recordings import IMPORT_DIR, add_import_arguments, import_config
 
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train a network on recordings (trainer service), offer it, promote it")
-    p.add_argument("recordings", nargs="*", help=".rrd files (default: the trainer's newest recording)")
+    p.add_argument("recordings", nargs="*", help=".rrd files or PX4 logs (.ulg, imported first) "
+                                                 "(default: the trainer's newest recording)")
     p.add_argument("--label", default="tdr", choices=("tdr", "eso"),
                    help="tdr: f_N + Δf̂, warm start from the active network; eso: x̂_3 under the eso pathway")
     p.add_argument("--lipschitz", type=float, default=None, help="L_N, normalised (default: active's / 1.0)")
@@ -28,7 +31,23 @@ def add_parser(subparsers) -> None:
     p.add_argument("--promote", action="store_true", help="promote the candidate once it has been in shadow")
     p.add_argument("--shadow", type=float, default=2.0, help="seconds in shadow before --promote (default 2)")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the job")
+    p.add_argument("--import-dir", default=IMPORT_DIR, help=f"where PX4 logs are imported to (default {IMPORT_DIR})")
+    add_import_arguments(p)
     add_bus_arguments(p)
+
+
+def imported(paths: list[str], args) -> list[str]:
+    """``paths`` with every PX4 log (``.ulg``) replaced by the recording it was imported as."""
+    from recordings.px4_import import import_px4_log
+
+    out = []
+    for path in paths:
+        if path.lower().endswith(".ulg"):
+            result = import_px4_log(path, args.import_dir, import_config(args, args.vehicle))
+            print(result.report(), flush=True)
+            path = str(result.path)
+        out.append(path)
+    return out
 
 
 def run(args) -> int:
@@ -42,7 +61,13 @@ def run(args) -> int:
     train_args = {"label": args.label, "epochs": args.epochs, "offer": args.offer, "seed": args.seed,
                   "request": uuid.uuid4().hex}
     if args.recordings:
-        train_args["recordings"] = [os.path.abspath(r) for r in args.recordings]
+        from recordings.reader import RecordingError
+
+        try:
+            train_args["recordings"] = [os.path.abspath(r) for r in imported(args.recordings, args)]
+        except (RecordingError, ValueError, OSError) as exc:
+            print(f"neso train: {exc}")
+            return 1
     if args.lipschitz is not None:
         train_args["lipschitz_bound"] = args.lipschitz
     events: list[str] = []

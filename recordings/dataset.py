@@ -4,7 +4,9 @@ Input: the network input ``z`` (5,) the estimator published with each estimate (
 ``[p_z, v_z, T_{k−1}, φ, θ]``, see ``neso.features``). Label (z axis, m/s²), as
 ``sim.experiments.teacher_dataset`` takes it from a flight log:
 
-- ``eso``: the ESO teacher, ``x̂_3`` = f̂ while the estimator's pathway was ``eso``;
+- ``eso``: the ESO teacher, ``x̂_3`` = f̂ while the estimator's pathway was ``eso``; a recording with
+  no estimates (an imported PX4 log) gets them from the ESO run offline over its recorded state and
+  thrust (:func:`teacher_selection`);
 - ``tdr``: total disturbance reconstruction, ``f_N + Δf̂`` while it flew ``neural_eso``.
 
 Samples are skipped while the estimator was not warm (its first ``skip_s`` after a (re)start:
@@ -59,6 +61,8 @@ def select(rec: Recording, label: str, *, skip_s: float = 0.5, vehicle: str | No
     if label not in LABELS:
         raise ValueError(f"label must be one of {LABELS}, got {label!r}")
     est = rec.channel("estimate", vehicle)
+    if len(est) == 0 and label == "eso" and len(rec.channel("state", vehicle)):
+        return teacher_selection(rec, skip_s=skip_s, vehicle=vehicle)  # no estimates: the ESO runs offline
     if len(est) == 0:
         return Selection(np.zeros((0, 5)), np.zeros(0), 0, {"no estimates recorded": 0})
     keep_rows = _last_by_seq(np.asarray(est.columns["seq"], dtype=np.int64))
@@ -86,6 +90,18 @@ def select(rec: Recording, label: str, *, skip_s: float = 0.5, vehicle: str | No
                f"pathway not {'/'.join(LABEL_PATHWAYS[label])}": int(np.sum(ok_warm & ~ok_pathway)),
                "on the ground": int(np.sum(ok_warm & ok_pathway & on_ground))}
     return Selection(z[keep], y[keep], len(seq), dropped)
+
+
+def teacher_selection(rec: Recording, *, skip_s: float = 0.5, vehicle: str | None = None) -> Selection:
+    """``eso`` pairs of a recording without estimates (an imported PX4 log): the ESO teacher run
+    offline over its states and setpoints (:func:`recordings.teacher.eso_teacher`)."""
+    from recordings.teacher import eso_teacher
+
+    run = eso_teacher(rec, skip_s=skip_s, vehicle=vehicle)
+    keep = run.warm & run.airborne
+    return Selection(run.z[keep], run.f_hat_mps2[keep, 2], len(run),
+                     {"estimator not warm (offline ESO)": int(np.sum(~run.warm)),
+                      "on the ground": int(np.sum(run.warm & ~run.airborne))})
 
 
 def load_training_set(paths, label: str, *, skip_s: float = 0.5) -> TrainingSet:
