@@ -20,7 +20,7 @@ import numpy as np
 
 from recordings.offline import run_estimator, sample_period_s
 from recordings.reader import Recording, RecordingError, read_recording, rerun_cli
-from runtime.schema import Keys, Message, StateMsg
+from runtime.schema import Keys, Message, ReplayMsg, StateMsg
 
 REPLAYED = ("state", "truth", "estimate", "setpoint", "reference")
 
@@ -61,11 +61,24 @@ def restamped(msg: Message, now_s: float) -> Message:
     return dataclasses.replace(msg, **changes)
 
 
+def origin_of(rec: Recording) -> str:
+    """What a recording records, in a line: a PX4 log imported (file, version, hardware) or a flight of this system."""
+    imported = rec.properties.get("import")
+    if isinstance(imported, dict):
+        return (f"PX4 log {imported.get('file_name', '?')} · PX4 {str(imported.get('px4_version', '?')).split(' ')[0]} · "
+                f"{imported.get('hardware', '?')}" + (" · mass assumed" if imported.get("mass_assumed") else ""))
+    flight = rec.properties.get("flight", {})
+    sources = "/".join(dict.fromkeys(rec.channel("state").columns.get("source", []))) or "?"
+    return f"flight {flight.get('flight', Path(rec.path).stem)} of {flight.get('vehicle', '?')} ({sources})"
+
+
 def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, stop=None, on_progress=None,
-                     wait_for_subscribers_s: float = 2.0) -> int:
+                     wait_for_subscribers_s: float = 2.0, provenance: tuple[str, str] | None = None) -> int:
     """Publish ``schedule`` under ``neso/<vehicle>/`` at the recorded pace × ``speed``; the count
     published. Waits up to ``wait_for_subscribers_s`` for someone to listen (a session that has just
-    opened does not know its subscribers yet, and the first samples would go nowhere)."""
+    opened does not know its subscribers yet, and the first samples would go nowhere).
+    ``provenance`` (file, origin): announced on ``neso/<vehicle>/replay`` at the start, once a second
+    and at the end, so watchers label the samples as a replay (not counted in the result)."""
     if not speed > 0:
         raise ValueError(f"speed must be positive, got {speed}")
     keys = Keys(vehicle)
@@ -79,8 +92,16 @@ def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, sto
     while time.monotonic() < deadline and not any(p.matching_status.matching for p in pubs.values()):
         time.sleep(0.02)
     time.sleep(0.1 if time.monotonic() < deadline else 0.0)  # the other topics' routes come up together
+    announce = session.declare_publisher(keys.topic("replay")) if provenance is not None else None
+    duration_s = schedule[-1][0] if schedule else 0.0
+
+    def say(t_s: float, playing: bool) -> None:
+        if announce is not None:
+            announce.put(ReplayMsg(stamp_s=time.monotonic(), file=provenance[0][:1024], origin=provenance[1][:1024],
+                                   t_s=max(0.0, t_s), duration_s=duration_s, speed=speed, playing=playing).to_bytes())
+
     start = time.monotonic()
-    n = 0
+    n, offset_s, next_say = 0, 0.0, start
     try:
         for offset_s, topic, msg in schedule:
             if stop is not None and stop.is_set():
@@ -88,13 +109,19 @@ def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, sto
             delay = start + offset_s / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            if time.monotonic() >= next_say:
+                say(offset_s, True)
+                next_say += 1.0
             pubs[topic].put(restamped(msg, time.monotonic()).to_bytes())
             n += 1
             if on_progress is not None and topic == "state" and msg.seq % 250 == 0:
                 on_progress(offset_s, msg)
     finally:
+        say(offset_s, False)
         for pub in pubs.values():
             pub.undeclare()
+        if announce is not None:
+            announce.undeclare()
     return n
 
 

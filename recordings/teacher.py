@@ -7,7 +7,9 @@ runs over the recorded states and setpoints exactly as ``--what-if`` runs it
 (:func:`recordings.offline.run_estimator`), restarting after every gap in the states.
 
 :func:`eso_teacher` returns arrays, one row per state sample, so other label kinds can be built on
-them (the state and the thrust are there to build any network input from).
+them (the state and the thrust are there to build any network input from; the arrays carry the
+names of a ``FlightSeries``: ``t_s``, ``pos_enu_m``, ``vel_enu_mps``, ``roll_rad``, ``pitch_rad``,
+``thrust_prev_n``, ``f_hat_mps2``, ``pathway``).
 """
 from __future__ import annotations
 
@@ -36,9 +38,19 @@ class TeacherRun:
     warm: np.ndarray  # (N,) bool: the observer had run skip_s since its (re)start
     airborne: np.ndarray  # (N,) bool: not on the ground (truth, telemetry, or thrust commanded)
     omega_o_rps: float
+    pathway: str = "eso"  # the labels' pathway (the observer alone)
 
     def __len__(self) -> int:
         return len(self.t_s)
+
+    # the fields of neso.learning.FlightSeries (issue 11) by their names there
+    @property
+    def roll_rad(self) -> np.ndarray:
+        return self.attitude_rad[:, 0]
+
+    @property
+    def pitch_rad(self) -> np.ndarray:
+        return self.attitude_rad[:, 1]
 
 
 def _on_ground(rec: Recording, vehicle: str | None, seq: np.ndarray, stamp: np.ndarray, thrust_n: np.ndarray):
