@@ -9,24 +9,11 @@ from pathlib import Path
 
 from recordings.px4_import import import_px4_log
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
+from tests.browser.test_dashboard import text, wait_text
 from tests.busutil import REPO, free_port, hub, neso, stop
 from tests.ulogfiles import SITL_LOG
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
-def text(page) -> str:
-    return page.evaluate("document.body.textContent")
-
-
-def wait_text(page, pattern: str, timeout_s: float) -> str:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        t = text(page)
-        if re.search(pattern, t):
-            return t
-        time.sleep(0.1)
-    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")
-
-
 def altitude_at(page, fraction: float) -> float | None:
     """The altitude plot's own readout (uPlot's legend) with the cursor at ``fraction`` of its width
     (0: the oldest sample shown, 1: now); None where it shows no value."""
