@@ -402,6 +402,8 @@ def px4_flight(path: str | Path, config: ImportConfig = ImportConfig()) -> PX4Fl
     # attitude (held), attitude setpoint (held), thrust (period average), status (held)
     q = np.stack([att.data[f"q[{i}]"].astype(float) for i in range(4)], axis=1)
     q_ok = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
+    if not q_ok.any():
+        raise ImportRefused(f"{path}: no valid {ATTITUDE_TOPIC}.q quaternion in the log")
     attitude = held(t_att[q_ok], euler_enu_flu_from_quat_ned_frd(q[q_ok]), t)
     setpoint = attitude.copy()
     sp = _dataset(log, SETPOINT_TOPIC)
