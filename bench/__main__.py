@@ -11,6 +11,7 @@ Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certi
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
 (:mod:`bench.gateway`, ~25 s).
 Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
+Then importing PX4 logs: the shared CubeOrange log and a 20-minute log (:mod:`bench.px4_import`, ~40 s).
 Pass ``--quick`` to skip the paper pipeline and shorten every section.
 """
 from __future__ import annotations
@@ -89,6 +90,11 @@ def main(argv: list[str]) -> int:
     from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows
 
     _print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
+
+    print(flush=True)
+    from bench.px4_import import COLUMNS as PX4_IMPORT_COLUMNS, px4_import_rows
+
+    _print_table(PX4_IMPORT_COLUMNS, px4_import_rows(quick))
     return 0
 
 

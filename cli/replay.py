@@ -62,7 +62,7 @@ def run(args) -> int:
 
 def _to_bus(args, rec) -> int:
     from cli.busargs import bus_from_args
-    from recordings.replay import bus_schedule, publish_schedule
+    from recordings.replay import bus_schedule, origin_of, publish_schedule
     from runtime.bus import open_session
 
     vehicle = args.as_vehicle or rec.vehicle
@@ -70,10 +70,12 @@ def _to_bus(args, rec) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"replaying {args.file} ({schedule[-1][0]:.1f} s, {len(schedule)} messages) as neso/{vehicle}/ "
+    origin = origin_of(rec)
+    print(f"replaying {args.file} ({schedule[-1][0]:.1f} s, {len(schedule)} messages; {origin}) as neso/{vehicle}/ "
           f"at ×{args.speed:g}", flush=True)
     with open_session(bus_from_args(args)) as session:
         n = publish_schedule(session, vehicle, schedule, speed=args.speed, stop=stop,
+                             provenance=(os.path.abspath(args.file), origin),
                              on_progress=lambda t, m: print(f"  t = {t:.1f} s (sample {m.seq})", flush=True))
     print(f"published {n} of {len(schedule)} messages", flush=True)
     return 0

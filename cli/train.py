@@ -1,9 +1,10 @@
 """``neso train``: ask a vehicle's trainer to train on recordings, wait for the result, optionally promote.
 
-    neso train [FILE.rrd ...] [--base] [--label eso|tdr|applied] [--lipschitz L_N] [--epochs N]
+    neso train [FILE.rrd|FILE.ulg ...] [--base] [--label eso|tdr|applied] [--lipschitz L_N] [--epochs N]
                [--no-offer] [--force-offer] [--promote [--force]]
 
-Sends ``train`` to ``neso/<v>/cmd/trainer`` and waits for that job's ``done``/``failed`` event;
+A PX4 log (``.ulg``) is imported first (``neso recordings import``, into ``--import-dir``, under
+``--vehicle``) and the recording it becomes is trained on. Sends ``train`` to ``neso/<v>/cmd/trainer`` and waits for that job's ``done``/``failed`` event;
 with ``--promote`` (after a passed offer and ``--shadow`` seconds in shadow) sends ``promote`` to
 the estimator. Exit 0 when everything asked for happened, 1 otherwise (the reason is printed).
 """
@@ -15,11 +16,13 @@ import time
 import uuid
 
 from cli.busargs import add_bus_arguments, bus_from_args
+from cli.recordings import IMPORT_DIR, add_import_arguments, import_config
 
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("train", help="train a network on recordings (trainer service), offer it, promote it")
-    p.add_argument("recordings", nargs="*", help=".rrd files (default: the trainer's newest recording)")
+    p.add_argument("recordings", nargs="*", help=".rrd files or PX4 logs (.ulg, imported first) "
+                                                 "(default: the trainer's newest recording)")
     p.add_argument("--base", action="store_const", const="base", default="tdr", dest="train_mode",
                    help="train a base network from scratch on ESO-teacher flights (default recipe) instead of "
                         "retraining the active network (TDR, with its recipe)")
@@ -35,7 +38,23 @@ def add_parser(subparsers) -> None:
     p.add_argument("--force", action="store_true", help="with --promote: even if uncertified or predicted worse")
     p.add_argument("--shadow", type=float, default=2.0, help="seconds in shadow before --promote (default 2)")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the job")
+    p.add_argument("--import-dir", default=IMPORT_DIR, help=f"where PX4 logs are imported to (default {IMPORT_DIR})")
+    add_import_arguments(p)
     add_bus_arguments(p)
+
+
+def imported(paths: list[str], args) -> list[str]:
+    """``paths`` with every PX4 log (``.ulg``) replaced by the recording it was imported as."""
+    from recordings.px4_import import import_px4_log
+
+    out = []
+    for path in paths:
+        if path.lower().endswith(".ulg"):
+            result = import_px4_log(path, args.import_dir, import_config(args, args.vehicle))
+            print(result.report(), flush=True)
+            path = str(result.path)
+        out.append(path)
+    return out
 
 
 def run(args) -> int:
@@ -51,7 +70,13 @@ def run(args) -> int:
     if args.label is not None:
         train_args["label"] = args.label
     if args.recordings:
-        train_args["recordings"] = [os.path.abspath(r) for r in args.recordings]
+        from recordings.reader import RecordingError
+
+        try:
+            train_args["recordings"] = [os.path.abspath(r) for r in imported(args.recordings, args)]
+        except (RecordingError, ValueError, OSError) as exc:
+            print(f"neso train: {exc}")
+            return 1
     if args.lipschitz is not None:
         train_args["lipschitz_bound"] = args.lipschitz
     events: list[str] = []

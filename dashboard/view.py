@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from dashboard.model import FleetModel, VehicleModel
+from dashboard.provenance import provenance_line
 from neso.rotations import world_from_body_zyx
 
 PATHWAYS = ("neural_eso", "eso", "nn", "none")
@@ -106,6 +107,7 @@ class DashboardView:
         gui.configure_theme(control_width="large", show_share_button=False, brand_color=(30, 90, 160))
         gui.main_panel.dock_right()
         self.title = gui.add_markdown("**Neural-ESO** · waiting for a vehicle")
+        self.provenance = gui.add_markdown("")  # live, or a replay and of what (dashboard/provenance.py)
         self.vehicle_dd = gui.add_dropdown("Vehicle", (self.selected,), initial_value=self.selected)
         self.vehicle_dd.on_update(lambda _: self._select(self.vehicle_dd.value))
         tabs = gui.add_tab_group()
@@ -327,6 +329,7 @@ class DashboardView:
         self._set(self.title, f"### {v.name} · {segment} · pathway **{est.pathway if est else '–'}**  \n"
                               f"certificate **{'–' if cert is None else ('HOLDS' if cert.holds else 'FAILS')}** · "
                               f"{rec_text}")
+        self._set(self.provenance, provenance_line(v, now_s))
         if state is not None:
             pose = (f"x {state.pos_enu_m[0]:+.3f} y {state.pos_enu_m[1]:+.3f} **z {state.pos_enu_m[2]:.3f} m** · "
                     f"roll {math.degrees(state.roll_rad):+.1f}° pitch {math.degrees(state.pitch_rad):+.1f}° "

@@ -24,6 +24,7 @@ class Entry:
     size_bytes: int
     closed: str  # why the segment ended ("" if the recorder died while writing it)
     error: str = ""  # why the file could not be read ("" if it could)
+    source: str = ""  # where the states came from: sim, mocap, or the PX4 log imported (version, hardware)
 
 
 def _in_order(values) -> tuple:
@@ -32,6 +33,16 @@ def _in_order(values) -> tuple:
         if not out or out[-1] != v:
             out.append(v)
     return tuple(dict.fromkeys(out)) if len(out) > 8 else tuple(out)
+
+
+def source_of(rec, vehicle: str) -> str:
+    """Where a recording's states came from, in a few words."""
+    imported = rec.properties.get("import")
+    if isinstance(imported, dict):
+        version = str(imported.get("px4_version", "?")).split(" ")[0]
+        return f"PX4 log {imported.get('file_name', '?')} ({version}, {imported.get('hardware', '?')})"
+    sources = rec.channel("state", vehicle).columns.get("source", [])
+    return "/".join(dict.fromkeys(sources)) or "-"
 
 
 def describe(path: str | Path) -> Entry:
@@ -60,7 +71,7 @@ def describe(path: str | Path) -> Entry:
         scenario=scenarios[0] if len(scenarios) else "", duration_s=float(t[-1] - t[0]) if len(t) > 1 else 0.0,
         pathways=_in_order(est.columns.get("pathway", [])), networks=_in_order(est.columns.get("network_id", [])),
         lipschitz_bounds=_in_order(bounds), samples=len(state), size_bytes=size,
-        closed=str(summary.get("end_reason", "")))
+        closed=str(summary.get("end_reason", "")), source=source_of(rec, vehicle))
 
 
 def recordings_in(directory: str | Path) -> list[Path]:
@@ -76,13 +87,13 @@ def catalog(directory: str | Path) -> list[Entry]:
 
 
 def format_table(entries: list[Entry]) -> str:
-    header = ("flight", "seg", "vehicle", "scenario", "duration", "pathway", "network", "L_N", "size", "ended", "file")
+    header = ("flight", "seg", "vehicle", "source", "scenario", "duration", "pathway", "network", "L_N", "size", "ended", "file")
     rows = [header]
     for e in entries:
         if e.error:
-            rows.append((e.flight, "-", "-", "-", "-", "-", "-", "-", f"{e.size_bytes / 1e6:.1f} MB", "UNREADABLE", e.path))
+            rows.append((e.flight, "-", "-", "-", "-", "-", "-", "-", "-", f"{e.size_bytes / 1e6:.1f} MB", "UNREADABLE", e.path))
             continue
-        rows.append((e.flight, str(e.segment), e.vehicle, e.scenario or "-", f"{e.duration_s:.1f} s",
+        rows.append((e.flight, str(e.segment), e.vehicle, e.source or "-", e.scenario or "-", f"{e.duration_s:.1f} s",
                      "→".join(e.pathways) or "-", "→".join(e.networks) or "-",
                      "→".join(f"{b:g}" for b in e.lipschitz_bounds) or "-", f"{e.size_bytes / 1e6:.1f} MB",
                      e.closed or "cut short (recorder died)", e.path))

@@ -6,7 +6,9 @@ estimator's f̂ and pathway when it recorded them — and the pairs are made by 
 the simulated pipeline uses: the inputs of a feature set (:mod:`neso.features`), built from the
 recorded state and thrust whatever network flew, and a label (:mod:`neso.learning`):
 
-- ``eso``: the ESO teacher, ``x̂_3`` = f̂ while the estimator's pathway was ``eso``;
+- ``eso``: the ESO teacher, ``x̂_3`` = f̂ while the estimator's pathway was ``eso``; a recording with
+  no estimates (an imported PX4 log) gets them from the ESO run offline over its recorded state and
+  thrust (:func:`recordings.teacher.eso_teacher`);
 - ``tdr``: total disturbance reconstruction, ``f_N + Δf̂`` while it flew ``neural_eso``;
 - ``applied``: the lag-consistent label from the smoothed measured acceleration and the applied
   thrust (any pathway), with the thrust lag identified on the same recordings unless given.
@@ -17,6 +19,8 @@ setpoint commanded no thrust); for the ESO labels while the estimator was not wa
 ``skip_s`` of the start of a stretch of consecutive samples (the smoothing's edges).
 """
 from __future__ import annotations
+
+import dataclasses
 
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,6 +139,8 @@ def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip
         series, seq, extra = flight_series(rec, vehicle)
     except RecordingError:
         return Selection(np.zeros((0, fset.size)), np.zeros(0), 0, {"no states recorded": 0})
+    if label == "eso" and not np.any(extra["warm_ticks"] >= 0):  # no estimates: the ESO runs offline
+        series, extra = _offline_teacher(rec, series, seq, extra, skip_s, vehicle)
     dt = series.dt_s
     zs, ys, masks = [], [], []
     for part in _stretches(seq):  # labels are smoothed along a stretch, never across a gap
@@ -153,6 +159,24 @@ def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip
                f"pathway not {'/'.join(needs or ())}": int(np.sum(ok_warm & ~ok_pathway)),
                "on the ground": int(np.sum(ok_warm & ok_pathway & extra["on_ground"]))}
     return Selection(z[keep], y[keep], len(seq), dropped)
+
+
+def _offline_teacher(rec: Recording, series: FlightSeries, seq: np.ndarray, extra: dict, skip_s: float,
+                     vehicle: str | None) -> tuple[FlightSeries, dict]:
+    """The series with the ESO teacher's f̂ run offline over the recorded states and setpoints (a
+    recording with no estimates, e.g. an imported PX4 log; :func:`recordings.teacher.eso_teacher`)."""
+    from recordings.teacher import eso_teacher
+
+    run = eso_teacher(rec, skip_s=skip_s, vehicle=vehicle)
+    row = {int(s): i for i, s in enumerate(run.seq)}
+    idx = np.array([row.get(int(s), -1) for s in seq])
+    hit = idx >= 0
+    f_hat = np.full((len(seq), 3), np.nan)
+    f_hat[hit] = run.f_hat_mps2[idx[hit]]
+    warm = np.where(hit & run.warm[np.maximum(idx, 0)], np.iinfo(np.int32).max, 0)  # the teacher says warm or not
+    on_ground = extra["on_ground"] | ~(hit & run.airborne[np.maximum(idx, 0)])
+    series = dataclasses.replace(series, f_hat_mps2=f_hat, pathway=np.full(len(seq), "eso", dtype=object))
+    return series, {"warm_ticks": warm, "on_ground": on_ground}
 
 
 def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATURE_SET,

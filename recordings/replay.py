@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from recordings.offline import run_estimator, sample_period_s
 from recordings.reader import Recording, RecordingError, read_recording, rerun_cli
-from runtime.schema import Keys, Message, StateMsg
+from runtime.schema import Keys, Message, ReplayMsg, StateMsg
 
 REPLAYED = ("state", "truth", "estimate", "setpoint", "reference")
 
@@ -60,11 +61,24 @@ def restamped(msg: Message, now_s: float) -> Message:
     return dataclasses.replace(msg, **changes)
 
 
+def origin_of(rec: Recording) -> str:
+    """What a recording records, in a line: a PX4 log imported (file, version, hardware) or a flight of this system."""
+    imported = rec.properties.get("import")
+    if isinstance(imported, dict):
+        return (f"PX4 log {imported.get('file_name', '?')} · PX4 {str(imported.get('px4_version', '?')).split(' ')[0]} · "
+                f"{imported.get('hardware', '?')}" + (" · mass assumed" if imported.get("mass_assumed") else ""))
+    flight = rec.properties.get("flight", {})
+    sources = "/".join(dict.fromkeys(rec.channel("state").columns.get("source", []))) or "?"
+    return f"flight {flight.get('flight', Path(rec.path).stem)} of {flight.get('vehicle', '?')} ({sources})"
+
+
 def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, stop=None, on_progress=None,
-                     wait_for_subscribers_s: float = 2.0) -> int:
+                     wait_for_subscribers_s: float = 2.0, provenance: tuple[str, str] | None = None) -> int:
     """Publish ``schedule`` under ``neso/<vehicle>/`` at the recorded pace × ``speed``; the count
     published. Waits up to ``wait_for_subscribers_s`` for someone to listen (a session that has just
-    opened does not know its subscribers yet, and the first samples would go nowhere)."""
+    opened does not know its subscribers yet, and the first samples would go nowhere).
+    ``provenance`` (file, origin): announced on ``neso/<vehicle>/replay`` at the start, once a second
+    and at the end, so watchers label the samples as a replay (not counted in the result)."""
     if not speed > 0:
         raise ValueError(f"speed must be positive, got {speed}")
     keys = Keys(vehicle)
@@ -78,8 +92,16 @@ def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, sto
     while time.monotonic() < deadline and not any(p.matching_status.matching for p in pubs.values()):
         time.sleep(0.02)
     time.sleep(0.1 if time.monotonic() < deadline else 0.0)  # the other topics' routes come up together
+    announce = session.declare_publisher(keys.topic("replay")) if provenance is not None else None
+    duration_s = schedule[-1][0] if schedule else 0.0
+
+    def say(t_s: float, playing: bool) -> None:
+        if announce is not None:
+            announce.put(ReplayMsg(stamp_s=time.monotonic(), file=provenance[0][:1024], origin=provenance[1][:1024],
+                                   t_s=max(0.0, t_s), duration_s=duration_s, speed=speed, playing=playing).to_bytes())
+
     start = time.monotonic()
-    n = 0
+    n, offset_s, next_say = 0, 0.0, start
     try:
         for offset_s, topic, msg in schedule:
             if stop is not None and stop.is_set():
@@ -87,13 +109,19 @@ def publish_schedule(session, vehicle: str, schedule, *, speed: float = 1.0, sto
             delay = start + offset_s / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            if time.monotonic() >= next_say:
+                say(offset_s, True)
+                next_say += 1.0
             pubs[topic].put(restamped(msg, time.monotonic()).to_bytes())
             n += 1
             if on_progress is not None and topic == "state" and msg.seq % 250 == 0:
                 on_progress(offset_s, msg)
     finally:
+        say(offset_s, False)
         for pub in pubs.values():
             pub.undeclare()
+        if announce is not None:
+            announce.undeclare()
     return n
 
 
@@ -136,56 +164,65 @@ class Comparison:
     f_hat_whatif_mps2: np.ndarray  # (N, 3)
     f_hat_flown_mps2: np.ndarray  # (N, 3)
     seq: np.ndarray  # (N,)
+    against: str = "flown"  # what the what-if is compared with: the f̂ flown, or the ESO run offline (none flew)
 
     def report(self) -> str:
         fmt = lambda v: "(" + ", ".join(f"{x:.4f}" for x in v) + ")"  # noqa: E731
         lines = [f"what-if {self.config} over {self.samples} samples (x, y, z in m/s²):",
-                 f"  f̂ what-if − f̂ flown: RMS {fmt(self.diff_rms_mps2)}, max |·| {fmt(self.diff_max_mps2)}"]
+                 f"  f̂ what-if − f̂ {self.against}: RMS {fmt(self.diff_rms_mps2)}, max |·| {fmt(self.diff_max_mps2)}"]
         if self.flown_err_rms_mps2 is not None:
-            lines += [f"  against the simulator's disturbance: flown RMS {fmt(self.flown_err_rms_mps2)}, "
+            lines += [f"  against the simulator's disturbance: {self.against} RMS {fmt(self.flown_err_rms_mps2)}, "
                       f"what-if RMS {fmt(self.whatif_err_rms_mps2)}"]
         return "\n".join(lines)
 
 
 def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Comparison:
     """Run the estimator service's step object with ``change`` on the recorded states and setpoints
-    (in their recorded arrival order) and compare its f̂ with the recorded one."""
+    (in their recorded arrival order, :func:`recordings.offline.run_estimator`) and compare its f̂
+    with the recorded one."""
     from services.estimator import DEFAULT_NETWORK, EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
 
     states, setpoints = rec.channel("state").messages(), rec.channel("setpoint").messages()
-    flown = {m.seq: m for m in rec.channel("estimate").messages()}
+    estimates = rec.channel("estimate").messages()
+    flown = {m.seq: m.f_hat_mps2 for m in estimates}
+    against, flown_pathway = "flown", estimates[0].pathway if estimates else "eso"
+    if states and setpoints and not flown:  # none of ours flew (an imported PX4 log): the ESO teacher is the reference
+        from recordings.teacher import eso_teacher
+
+        run = eso_teacher(rec, skip_s=skip_s)
+        flown = {int(s): tuple(f) for s, f, warm in zip(run.seq, run.f_hat_mps2, run.warm) if warm}
+        against = "ESO offline"
     if not states or not flown:
-        raise RecordingError(f"{rec.path}: needs recorded states and estimates")
+        raise RecordingError(f"{rec.path}: needs recorded states and estimates (or setpoints for the offline ESO)")
     recorded = rec.properties.get("params", {}).get("estimator", {})
     recorded = recorded if isinstance(recorded, dict) else {}
-    t = np.array([m.t_s for m in states])
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.02
-    pathway = change.pathway or recorded.get("pathway") or states and next(iter(flown.values())).pathway
+    dt = sample_period_s([m.t_s for m in states])
+    pathway = change.pathway or recorded.get("pathway") or flown_pathway
     config = EstimatorConfig(network=change.network if change.network is not None else DEFAULT_NETWORK,
                              pathway=pathway, omega_o_rps=change.omega_o_rps or 15.0, dt_s=dt)
     network, source = load_flown_network(config.network)
     choice = NetworkChoice(network, source, config.network_dir)
-    core = EstimatorCore(config, network, choice)
-    flown_ids = {m.network_id for m in flown.values()}
+    loaded_id = network.metadata.get("id", "unnamed") if network is not None else "none"
     bound = change.lipschitz_bound
-    if bound is None and network is not None and flown_ids == {core.network_id}:
+    if bound is None and network is not None and {m.network_id for m in estimates} == {loaded_id}:
         bound = recorded.get("lipschitz_bound")  # the recorded L_N, when the recording flew this network
     if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound_physical()):
         refusal = choice.refusal(float(bound))
         if refusal:
             raise ValueError(refusal)
-        core.apply({"lipschitz_bound": float(bound)})
-    events = sorted([(m.stamp_s, 1, m) for m in states] + [(m.stamp_s, 0, m) for m in setpoints], key=lambda e: (e[0], e[1]))
-    ours = {}
-    for _, kind, msg in events:
-        outputs = core.on_state(msg, 0.0) if kind == 1 else core.on_setpoint(msg, 0.0)
-        for est in outputs:
-            ours[est.seq] = est
+
+    def make_core(dt_s: float) -> EstimatorCore:
+        core = EstimatorCore(dataclasses.replace(config, dt_s=dt_s), network, choice)
+        if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound_physical()):
+            core.apply({"lipschitz_bound": float(bound)})
+        return core
+
+    ours = run_estimator(states, setpoints, make_core)
     common = sorted(s for s in set(ours) & set(flown) if ours[s].warm_ticks * dt >= skip_s)
     if not common:
         raise RecordingError(f"{rec.path}: no sample where both estimates are warm")
     a = np.array([ours[s].f_hat_mps2 for s in common])
-    b = np.array([flown[s].f_hat_mps2 for s in common])
+    b = np.array([flown[s] for s in common])
     d = a - b
     truth = {m.seq: m for m in rec.channel("truth").messages()}
     flown_err = whatif_err = None
@@ -196,7 +233,8 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
     used = {"pathway": pathway, "lipschitz_bound": bound, "omega_o_rps": config.omega_o_rps, "network": config.network}
     return Comparison(config=used, samples=len(common), diff_rms_mps2=tuple(np.sqrt(np.mean(d**2, axis=0))),
                       diff_max_mps2=tuple(np.max(np.abs(d), axis=0)), flown_err_rms_mps2=flown_err,
-                      whatif_err_rms_mps2=whatif_err, f_hat_whatif_mps2=a, f_hat_flown_mps2=b, seq=np.array(common))
+                      whatif_err_rms_mps2=whatif_err, f_hat_whatif_mps2=a, f_hat_flown_mps2=b, seq=np.array(common),
+                      against=against)
 
 
 def load(path: str | Path) -> Recording:

@@ -51,7 +51,8 @@ ROLES: tuple[Role, ...] = (
          publishes=_topics("telemetry"), subscribes=_topics("setpoint", "state"), enabled_by="mavlink_vehicle"),
     Role("dashboard", "dashboard.service", "operator's web dashboard (viser): watches every vehicle, steers by "
          "parameters and commands", publishes={}, subscribes={}, per_vehicle=False, enabled_by="dashboard",
-         watches=("state", "truth", "estimate", "setpoint", "reference", "telemetry", "recording", "network")),
+         watches=("state", "truth", "estimate", "setpoint", "reference", "telemetry", "recording", "network",
+                  "replay")),
 )
 
 GRAPH: dict[str, Role] = {role.name: role for role in ROLES}

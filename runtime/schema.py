@@ -11,6 +11,7 @@ Keys (one vehicle ``<v>``; several vehicles share a bus under their own prefixes
 ``neso/<v>/telemetry``                TelemetryMsg     px4_gateway → anyone watching (vehicle's own report)
 ``neso/<v>/recording``                RecordingMsg     recorder → anyone watching
 ``neso/<v>/network``                  NetworkMsg       estimator → anyone watching (active/candidate)
+``neso/<v>/replay``                   ReplayMsg        ``neso replay --to-bus`` → anyone watching (not live)
 ``neso/<v>/event/<service>``          EventMsg         what a service wants an operator to know
 ``neso/<v>/health/<service>``         HealthMsg        1 Hz: rate, latency, rejected, staleness
 ``neso/<v>/alive/<service>``          (liveliness)     token while the service runs
@@ -48,7 +49,8 @@ MAX_PAYLOAD_BYTES = 1 << 20
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
 PATHWAYS = ("neural_eso", "eso", "nn", "none")  # mirrors neso.estimator.PATHWAYS (checked by a test)
-ESTIMATE_SOURCES = ("estimator", "local_eso")
+ESTIMATE_SOURCES = ("estimator", "local_eso", "px4")  # px4: PX4's own controller (a flight imported from its log)
+STATE_SOURCES = ("sim", "mocap", "replay", "px4")  # px4: PX4's own estimate (EKF2), imported from its log
 EVENT_LEVELS = ("info", "warning", "error")
 LIMIT_M = 1.0e4  # positions and distances beyond this are not a vehicle in a room
 LIMIT_MPS = 1.0e3
@@ -233,7 +235,8 @@ _ACC = _vector(3, LIMIT_MPS2)
 
 @dataclass(frozen=True, slots=True)
 class StateMsg(Message):
-    """A state sample (ENU, SI). ``source``: ``sim``, ``mocap`` or ``replay``."""
+    """A state sample (ENU, SI). ``source``: ``sim``, ``mocap``, ``replay`` (published again from a
+    recording) or ``px4`` (PX4's own estimate, imported from its flight log)."""
 
     TYPE: ClassVar[str] = "state"
     seq: int = f(_SEQ)
@@ -244,7 +247,7 @@ class StateMsg(Message):
     roll_rad: float = f(_ANGLE)
     pitch_rad: float = f(_ANGLE)
     yaw_rad: float = f(_ANGLE)
-    source: str = f(_text(("sim", "mocap", "replay")))
+    source: str = f(_text(STATE_SOURCES))
 
 
 @dataclass(frozen=True, slots=True)
@@ -288,7 +291,8 @@ class EstimateMsg(Message):
 class SetpointMsg(Message):
     """The attitude setpoint answering state ``seq`` (ENU/FLU, ZYX Euler, rad), with what the
     estimator must be told acted over the next period: the nominal acceleration it produces
-    (m/s²) and the commanded thrust (N). ``estimate_source`` says which f̂ the controller used.
+    (m/s²) and the commanded thrust (N). ``estimate_source`` says which f̂ the controller used
+    (``px4``: none of ours, PX4's own controller commanded it: a flight imported from its log).
     ``state_stamp_s`` echoes the state's ``stamp_s`` (end-to-end latency)."""
 
     TYPE: ClassVar[str] = "setpoint"
@@ -466,6 +470,24 @@ class NetworkMsg(Message):
     canary: dict = f(_mapping, default_factory=dict)
 
 
+@dataclass(frozen=True, slots=True)
+class ReplayMsg(Message):
+    """A recorded flight being published again (``neso replay --to-bus``): at the start, once a
+    second and at the end (``playing`` false), so a watcher labels the vehicle's samples as a
+    replay and says where they came from. ``file``: the recording; ``origin``: what it records
+    (a flight of this system, or a PX4 log imported, with its version and hardware);
+    ``t_s``/``duration_s``: flight time replayed so far / in all; ``speed``: the pace factor."""
+
+    TYPE: ClassVar[str] = "replay"
+    stamp_s: float = f(_STAMP)
+    file: str = f(_text(max_len=1024))
+    origin: str = f(_text(max_len=1024))
+    t_s: float = f(_number(0.0))
+    duration_s: float = f(_number(0.0))
+    speed: float = f(_number(0.0))
+    playing: bool = f(_flag)
+
+
 # -- keys -----------------------------------------------------------------------------------------
 # Stream topics: name → message type. The per-service keys (event, health, alive, param,
 # params, cmd) exist for every service and are built by Keys.
@@ -478,6 +500,7 @@ TOPICS: dict[str, type[Message]] = {
     "telemetry": TelemetryMsg,
     "recording": RecordingMsg,
     "network": NetworkMsg,
+    "replay": ReplayMsg,
 }
 
 

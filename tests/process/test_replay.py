@@ -82,7 +82,9 @@ def test_recordings_cli_lists_the_catalog_and_counts_training_pairs(tmp_path, re
     out = listing.communicate(timeout=60)[0]
     assert listing.returncode == 0, out
     header, row = out.splitlines()[:2]
-    assert header.split()[:9] == ["flight", "seg", "vehicle", "scenario", "duration", "pathway", "network", "L_N", "size"]
+    assert header.split()[:10] == ["flight", "seg", "vehicle", "source", "scenario", "duration", "pathway", "network",
+                                   "L_N", "size"]
+    assert row.split()[3] == "sim", "the states came from the simulator"
     assert "uav1" in row and "nominal_landing" in row and "12.0 s" in row and "eso" in row and "base-L1.0" in row
     (tmp_path / "broken.rrd").write_bytes(b"not a recording")
     listing = neso("recordings", "list", str(tmp_path))

@@ -108,3 +108,26 @@ def test_bad_payloads_are_counted_never_fatal_and_routed_by_vehicle():
     assert not m.vehicles["uav2"].services["estimator"].alive
     assert math.isnan(m.vehicles["uav2"].tracking_rms_m()[0])  # no reference yet
     assert np.isfinite(m.vehicles["uav2"].window()["z"]).all()
+
+
+def test_a_replayed_flight_is_labelled_not_live_with_its_origin():
+    import dataclasses
+
+    from dashboard.provenance import provenance_line
+    from runtime.schema import ReplayMsg
+
+    v = VehicleModel("uav1")
+    assert provenance_line(v, 10.0) == "no samples"
+    v.ingest("state", state(1, 1.0), 10.0)
+    assert provenance_line(v, 10.5).startswith("● **LIVE** · state from sim")
+    v.ingest("state", dataclasses.replace(state(2, 1.0), source="replay"), 11.0)
+    assert "REPLAY (not live)" in provenance_line(v, 11.1) and "not announced" in provenance_line(v, 11.1)
+    announced = ReplayMsg(stamp_s=11.0, file="/data/px4-sitl-takeoff-hover.rrd",
+                          origin="PX4 log px4-sitl-takeoff-hover.ulg · PX4 v1.15.0 · PX4_SITL", t_s=3.0,
+                          duration_s=30.7, speed=2.0, playing=True)
+    v.ingest("replay", announced, 11.0)
+    line = provenance_line(v, 11.2)
+    assert "REPLAY (not live)" in line and "PX4 log px4-sitl-takeoff-hover.ulg" in line and "3.0 / 30.7 s at ×2" in line
+    v.ingest("replay", dataclasses.replace(announced, playing=False), 12.0)
+    assert provenance_line(v, 12.1).startswith("■ replay ended")
+    assert provenance_line(v, 30.0).startswith("■ replay ended"), "the states stopped with it"

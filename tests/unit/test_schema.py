@@ -12,7 +12,7 @@ from neso.estimator import PATHWAYS as METHOD_PATHWAYS
 from runtime import schema
 from runtime.schema import (PATHWAYS, SCHEMA_VERSION, CommandReply, CommandRequest, EstimateMsg, EventMsg, HealthMsg,
                             Keys, Message, ParamReply, ParamRequest, ParamStateMsg, ReferenceMsg, SchemaError,
-                            SetpointMsg, StateMsg, TruthMsg, TelemetryMsg, RecordingMsg, NetworkMsg,
+                            SetpointMsg, StateMsg, TruthMsg, TelemetryMsg, RecordingMsg, NetworkMsg, ReplayMsg,
                             any_vehicle, vehicle_of)
 
 V3 = (0.1, -2.5, 1e-300)
@@ -43,6 +43,9 @@ EXAMPLES: list[Message] = [
     NetworkMsg(stamp_s=1.0, seq=100, active={"id": "base-L1", "source": "file", "lipschitz_norm": 1.0,
                                              "lipschitz_phys": 31.6},
                candidate={}, previous={}, shadow_error_rms_mps2=-1.0),
+    ReplayMsg(stamp_s=1.0, file="out/imports/px4-sitl-takeoff-hover.rrd",
+              origin="PX4 log px4-sitl-takeoff-hover.ulg · PX4 v1.15.0 · PX4_SITL", t_s=3.5, duration_s=31.0,
+              speed=2.0, playing=True),
 ]
 
 
