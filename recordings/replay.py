@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from recordings.reader import Recording, RecordingError, read_recording, rerun_cli
+from runtime.graph import OUTSIDERS
 from runtime.schema import Keys, Message, StateMsg
 
-REPLAYED = ("state", "truth", "estimate", "setpoint", "reference")
+REPLAYED = next(o for o in OUTSIDERS if o.name == "replay").publishes  # what its certificate may put
 
 
 def viewer_argv(path: str | Path, *, web: bool = False, web_port: int = 9090, grpc_port: int = 9876) -> list[str]:
