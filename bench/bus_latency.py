@@ -176,10 +176,18 @@ class PipelineRun:
     source_misses_after: int | None
 
 
-def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = ()) -> PipelineRun:
+def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
+             secure_dir: str | None = None) -> PipelineRun:
     """Fly ``neso up`` at ``rate_hz`` for ``DISCARD_S + flight_s`` on a free hub port and probe it
-    (``extra_args``: more ``neso up`` options)."""
-    hub = f"tcp/127.0.0.1:{free_port()}"
+    (``extra_args``: more ``neso up`` options; ``secure_dir``: ``--secure`` with the credentials
+    there, the probe presenting the ``operator`` certificate)."""
+    hub = f"{'tls' if secure_dir else 'tcp'}/127.0.0.1:{free_port()}"
+    probe_bus = BusConfig(connect=(hub,))
+    if secure_dir:
+        from runtime.secure import Credentials
+
+        probe_bus = BusConfig(connect=(hub,), listen=("tls/127.0.0.1:0",), credentials=Credentials(secure_dir, "operator"))
+        extra_args = (*extra_args, "--secure", "--secure-dir", secure_dir)
     keys = Keys("uav1")
     arrivals: dict[int, tuple[float, float]] = {}  # seq → (state_stamp_s, received_s)
     status: list[tuple[int, int]] = []  # (sample, deadline misses) from the source's health
@@ -195,7 +203,7 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = ()) 
         if match:
             status.append((int(match[1]), int(match[2])))
 
-    with session(BusConfig(connect=(hub,))) as probe:
+    with session(probe_bus) as probe:
         probe.declare_subscriber(keys.topic("setpoint"), on_setpoint)
         probe.declare_subscriber(keys.health("source"), on_health)
         run_s = DISCARD_S + flight_s
