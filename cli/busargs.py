@@ -42,6 +42,13 @@ def credentials_from_args(args, identity: str):
         raise SystemExit(f"error: {exc}") from None
 
 
+def refusal_hint(args, identity: str = "operator") -> str:
+    """What to add to "no reply" on a secure bus (the ACL drops what it refuses without a word)."""
+    if not getattr(args, "secure", False):
+        return ""
+    return f" (or the bus's access control does not let {args.identity or identity!r} send it)"
+
+
 def bus_from_args(args, *, role: str = "peer", identity: str = "operator") -> BusConfig:
     """The BusConfig the options describe; ``role`` ``router`` makes the hub's defaults;
     ``identity``: the certificate a ``--secure`` session presents unless ``--identity`` says."""
@@ -53,7 +60,8 @@ def bus_from_args(args, *, role: str = "peer", identity: str = "operator") -> Bu
             listen = tuple(args.listen or (args.connect or [hub])[:1])
             return BusConfig(connect=(), listen=listen, mode="router", config_file=args.zenoh_config,
                              low_latency=args.low_latency, credentials=credentials)
-        return BusConfig(connect=tuple(args.connect or (hub,)), listen=tuple(args.listen or (listen_any,)),
+        default_listen = () if args.mode == "client" else (listen_any,)  # a client only talks through the hub
+        return BusConfig(connect=tuple(args.connect or (hub,)), listen=tuple(args.listen or default_listen),
                          mode=args.mode, config_file=args.zenoh_config, low_latency=args.low_latency,
                          credentials=credentials)
     except ValueError as exc:

@@ -1,8 +1,8 @@
 """`neso up --secure`: real processes, real Zenoh sessions over real mutual TLS, the ACL made from
 the service graph; then the operator's laptop drops off mid-mission.
 
-One flight (hub, source, estimator, controller, dashboard as the `operator`) on credentials
-made by the real `neso secure init`. Sessions from this test present other identities: none,
+One flight (hub, source, estimator, controller, recorder, dashboard as the `operator`) on
+credentials made by the real `neso secure init`. Sessions from this test present other identities: none,
 the `operator`, the `recorder`, the `trainer`, a certificate of another CA, an expired one.
 Tests run in file order; the last one freezes and then kills the dashboard.
 """
@@ -59,8 +59,9 @@ class Flight:
         self.expired_dir = credentials_dir(workdir, "expired", ca_pem, issue(ca, "operator", days=-1))
         self.port = free_port()
         self.endpoint = f"tls/127.0.0.1:{self.port}"
+        self.recordings = os.path.join(workdir, "recordings")
         self.proc = neso("up", "--secure", "--secure-dir", self.dir, "--hub", self.endpoint, "--mission", "hover",
-                         "--scenario", "nominal_landing", "--no-record", "--no-trainer",
+                         "--scenario", "nominal_landing", "--recordings-dir", self.recordings, "--no-trainer",
                          "--dashboard-port", str(free_port()))
         self.output: list[str] = []
         threading.Thread(target=self._pump, daemon=True).start()
@@ -86,7 +87,7 @@ class Flight:
 
 
 @pytest.fixture(scope="module")
-def flight(tmp_path_factory):
+def flight(tmp_path_factory, rerun_home):
     workdir = str(tmp_path_factory.mktemp("secure"))
     f = Flight(workdir)
     try:
@@ -184,6 +185,26 @@ def test_only_the_trainer_may_offer_a_network(flight, tmp_path):
     assert not reply.ok and "no-such-network" in reply.message, reply  # heard, and refused by the gate
     reply = command(flight.s, KEYS, "estimator", "promote")  # the operator's other commands go through
     assert not reply.ok and "candidate" in reply.message
+
+
+def test_the_recorder_records_the_secure_flight_and_every_services_parameters(flight):
+    from recordings.reader import read_recording
+
+    assert command(flight.s, KEYS, "recorder", "stop").ok
+    deadline = time.monotonic() + 15.0
+    files: list[str] = []
+    while time.monotonic() < deadline and not files:
+        time.sleep(0.2)
+        files = [os.path.join(flight.recordings, f) for f in sorted(os.listdir(flight.recordings))
+                 if f.endswith(".rrd")] if os.path.isdir(flight.recordings) else []
+    assert files, "no recording written"
+    wait_output(flight, "[recorder]", 1.0)
+    time.sleep(1.0)  # the stop is done once the file is closed
+    rec = read_recording(files[0])
+    params = rec.properties["params"]  # read on params/<service>, which any identity may query
+    assert params["estimator"]["pathway"] == "neural_eso" and "kp_z" in params["controller"], params
+    for topic in ("state", "truth", "estimate", "setpoint", "reference"):
+        assert len(rec.channel(topic)) > 100, topic
 
 
 @pytest.mark.parametrize("which, reason", [("stranger", "UnknownIssuer"), ("expired", "expired")])
