@@ -89,10 +89,20 @@ def _end(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def zenoh_round_trips_s(rate_hz: float, n: int) -> list[float]:
-    """``n`` Zenoh round trips (s) paced at ``rate_hz``, after the link answers a first ping."""
+def zenoh_round_trips_s(rate_hz: float, n: int, secure_dir: str | None = None) -> list[float]:
+    """``n`` Zenoh round trips (s) paced at ``rate_hz``, after the link answers a first ping
+    (``secure_dir``: over mutual TLS with the ACL, this side the ``source``, the echo the ``estimator``)."""
+    from bench.echo import PING, PONG, SECURE_PING, SECURE_PONG
+
     port = free_port()
-    echo, line = _echo("zenoh", str(port))
+    echo, line = _echo("zenoh", str(port), *((secure_dir,) if secure_dir else ()))
+    config = BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=())
+    ping_key, pong_key = PING, PONG
+    if secure_dir:
+        from runtime.secure import Credentials
+
+        config = BusConfig(connect=(f"tls/127.0.0.1:{port}",), listen=(), credentials=Credentials(secure_dir, "source"))
+        ping_key, pong_key = SECURE_PING, SECURE_PONG
     rtts: list[float] = []
 
     def on_pong(sample) -> None:
@@ -102,9 +112,9 @@ def zenoh_round_trips_s(rate_hz: float, n: int) -> list[float]:
     try:
         if line != "ready":
             raise RuntimeError(f"Zenoh echo did not start (said {line!r})")
-        with session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=())) as s:
-            s.declare_subscriber("bench/pong", on_pong)
-            ping = s.declare_publisher("bench/ping", express=True)
+        with session(config) as s:
+            s.declare_subscriber(pong_key, on_pong)
+            ping = s.declare_publisher(ping_key, express=True)
             deadline = time.monotonic() + 10.0
             while not rtts and time.monotonic() < deadline:
                 _paced(rate_hz, 10, lambda: ping.put(_payload()))

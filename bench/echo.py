@@ -5,6 +5,9 @@ every datagram back to its sender.
 ``python -m bench.echo zenoh <port>``: a Zenoh peer listening on ``tcp/127.0.0.1:<port>``
 (multicast scouting off) that puts every ``bench/ping`` payload, unchanged, on ``bench/pong``
 (express); prints ``ready`` once declared.
+``python -m bench.echo zenoh <port> <secure dir>``: the same on ``tls/`` as the ``estimator``
+(mutual TLS and the graph's ACL), echoing ``neso/bench/state`` on ``neso/bench/estimate`` (keys
+the ACL lets a ``source`` and the ``estimator`` put).
 
 Both run until their stdin closes, then close their socket or session.
 """
@@ -15,6 +18,7 @@ import sys
 import threading
 
 PING, PONG = "bench/ping", "bench/pong"
+SECURE_PING, SECURE_PONG = "neso/bench/state", "neso/bench/estimate"
 
 
 def _udp() -> None:
@@ -32,15 +36,22 @@ def _udp() -> None:
     sock.close()
 
 
-def _zenoh(port: int) -> None:
+def _zenoh(port: int, secure_dir: str | None = None) -> None:
     from runtime.bus import BusConfig, open_session
 
-    with open_session(BusConfig(connect=(), listen=(f"tcp/127.0.0.1:{port}",))) as session:
-        pong = session.declare_publisher(PONG, express=True)
-        session.declare_subscriber(PING, lambda sample: pong.put(sample.payload.to_bytes()))
+    config = BusConfig(connect=(), listen=(f"tcp/127.0.0.1:{port}",))
+    ping_key, pong_key = PING, PONG
+    if secure_dir:
+        from runtime.secure import Credentials
+
+        config = BusConfig(connect=(), listen=(f"tls/127.0.0.1:{port}",), credentials=Credentials(secure_dir, "estimator"))
+        ping_key, pong_key = SECURE_PING, SECURE_PONG
+    with open_session(config) as session:
+        pong = session.declare_publisher(pong_key, express=True)
+        session.declare_subscriber(ping_key, lambda sample: pong.put(sample.payload.to_bytes()))
         print("ready", flush=True)
         sys.stdin.read()
 
 
 if __name__ == "__main__":
-    _udp() if sys.argv[1] == "udp" else _zenoh(int(sys.argv[2]))
+    _udp() if sys.argv[1] == "udp" else _zenoh(int(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else None)

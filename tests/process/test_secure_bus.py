@@ -187,6 +187,19 @@ def test_only_the_trainer_may_offer_a_network(flight, tmp_path):
     assert not reply.ok and "candidate" in reply.message
 
 
+def test_neso_replay_to_bus_publishes_as_the_replay_identity(flight):
+    ghost = Probe(flight.s, vehicle="ghost", topics=("state", "setpoint"))
+    try:
+        proc = neso("replay", "recordings/examples/nominal-landing-eso.rrd", "--to-bus", "--as", "ghost", "--speed", "4",
+                    "--secure", "--secure-dir", flight.dir, "--connect", flight.endpoint)
+        out = proc.communicate(timeout=60)[0]
+        assert proc.returncode == 0, out
+        assert len(ghost.get("state")) > 400 and len(ghost.get("setpoint")) > 400, out
+        assert all(m.source == "replay" for m in ghost.get("state"))
+    finally:
+        ghost.close()
+
+
 def test_the_recorder_records_the_secure_flight_and_every_services_parameters(flight):
     from recordings.reader import read_recording
 
