@@ -89,19 +89,19 @@ def _end(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def zenoh_round_trips_s(rate_hz: float, n: int, secure_dir: str | None = None) -> list[float]:
+def zenoh_round_trips_s(rate_hz: float, n: int, secure_dir: str | None = None, variant: str = "acl",
+                        port: int | None = None) -> list[float]:
     """``n`` Zenoh round trips (s) paced at ``rate_hz``, after the link answers a first ping
-    (``secure_dir``: over mutual TLS with the ACL, this side the ``source``, the echo the ``estimator``)."""
-    from bench.echo import PING, PONG, SECURE_PING, SECURE_PONG
+    (``secure_dir``: on a secure bus, this side the ``source``, the echo the ``estimator``, as
+    :func:`bench.echo.secure_config` ``variant`` says; ``routed`` needs the hub's ``port``)."""
+    from bench.echo import PING, PONG, SECURE_PING, SECURE_PONG, secure_config
 
-    port = free_port()
-    echo, line = _echo("zenoh", str(port), *((secure_dir,) if secure_dir else ()))
+    port = port or free_port()
+    echo, line = _echo("zenoh", str(port), *((secure_dir, variant) if secure_dir else ()))
     config = BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=())
     ping_key, pong_key = PING, PONG
     if secure_dir:
-        from runtime.secure import Credentials
-
-        config = BusConfig(connect=(f"tls/127.0.0.1:{port}",), listen=(), credentials=Credentials(secure_dir, "source"))
+        config = secure_config(port, secure_dir, variant, echo=False)
         ping_key, pong_key = SECURE_PING, SECURE_PONG
     rtts: list[float] = []
 
