@@ -18,7 +18,8 @@ from runtime.client import get_params
 from runtime.probe import Probe
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
 from tests.browser.test_dashboard import KEYS, choose, set_lipschitz, tab, text, wait_text
-from tests.busutil import free_port, neso, secure_init, secure_peer, session, stop
+from runtime.launcher import interrupt
+from tests.busutil import free_port, neso, secure_init, secure_peer, session
 
 
 class SecureFlight:
@@ -31,7 +32,8 @@ class SecureFlight:
                          "--scenario", "nominal_landing", "--dashboard-port", self.url.rsplit(":", 1)[1],
                          "--no-record", "--no-trainer")
         self.output: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
+        self.pumping = threading.Thread(target=self._pump, daemon=True)
+        self.pumping.start()
         self._session_cm = session(secure_peer(self.endpoint, self.dir, "recorder"))  # watches; may not steer
         self.s = self._session_cm.__enter__()
         self.probe = Probe(self.s)
@@ -44,7 +46,9 @@ class SecureFlight:
         self.probe.close()
         self._session_cm.__exit__(None, None, None)
         try:
-            return stop(self.proc, timeout_s=15)
+            interrupt(self.proc)  # Ctrl-C; the pump thread reads the rest
+            self.pumping.join(5.0)
+            return "".join(self.output)
         finally:
             shutil.rmtree(self.workdir, ignore_errors=True)
 
@@ -66,7 +70,7 @@ def flight():
                 browser.close()
     finally:
         out = f.close()
-        print("".join(f.output)[-3000:] + out[-1000:])
+        print(out[-3000:])
 
 
 def test_the_page_shows_the_secure_flight(flight):

@@ -23,7 +23,8 @@ from runtime.pki import Issued, issue, make_ca, write_private, write_public
 from runtime.probe import Probe
 from runtime.schema import HealthMsg, Keys
 from runtime.secure import CA_FILE, CA_KEY_FILE, cert_file, key_file
-from tests.busutil import free_port, neso, role_pid, secure_init, secure_peer, session, stop
+from runtime.launcher import interrupt
+from tests.busutil import free_port, neso, role_pid, secure_init, secure_peer, session
 
 KEYS = Keys("uav1")
 
@@ -64,7 +65,8 @@ class Flight:
                          "--scenario", "nominal_landing", "--recordings-dir", self.recordings, "--no-trainer",
                          "--dashboard-port", str(free_port()))
         self.output: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
+        self.pumping = threading.Thread(target=self._pump, daemon=True)
+        self.pumping.start()
         self._cm = session(secure_peer(self.endpoint, self.dir, "operator"))
         self.s = self._cm.__enter__()
         self.probe = Probe(self.s)
@@ -83,7 +85,9 @@ class Flight:
         self.sub.undeclare()
         self.probe.close()
         self._cm.__exit__(None, None, None)
-        return stop(self.proc, timeout_s=15)
+        interrupt(self.proc)  # Ctrl-C; the pump thread reads the rest
+        self.pumping.join(5.0)
+        return "".join(self.output)
 
 
 @pytest.fixture(scope="module")
