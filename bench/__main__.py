@@ -5,6 +5,9 @@ tick; network inference at batch 1; and the whole ``neso experiment paper`` pipe
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
+Then the secure bus (:mod:`bench.secure`, ~5 min): Zenoh ping-pong plain, over mutual TLS, with the
+ACL, and routed through a secure hub; the pipeline plain beside ``--secure``; at 500 and 50 Hz, two
+rotated rounds each; also into ``out/bench.json`` (``"secure"``).
 Then recording (:mod:`bench.recording`, ~85 s): loop latency at 50 Hz with the recorder off beside on,
 the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
@@ -71,6 +74,13 @@ def main(argv: list[str]) -> int:
     print(flush=True)
     _print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
     print(FOOTNOTE)
+    from bench.secure import COLUMNS as SECURE_COLUMNS, record, secure_rows
+
+    print(flush=True)
+    secure_results: dict = {}
+    _print_table(SECURE_COLUMNS, secure_rows(flight_s=6.0 if quick else 15.0, floor_s=3.0 if quick else 6.0,
+                                             rounds=1 if quick else 2, results=secure_results))
+    record("secure", secure_results)
     from bench.recording import COLUMNS as RECORDING_COLUMNS, recording_rows
 
     print(flush=True)

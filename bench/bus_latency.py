@@ -89,10 +89,20 @@ def _end(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def zenoh_round_trips_s(rate_hz: float, n: int) -> list[float]:
-    """``n`` Zenoh round trips (s) paced at ``rate_hz``, after the link answers a first ping."""
-    port = free_port()
-    echo, line = _echo("zenoh", str(port))
+def zenoh_round_trips_s(rate_hz: float, n: int, secure_dir: str | None = None, variant: str = "acl",
+                        port: int | None = None) -> list[float]:
+    """``n`` Zenoh round trips (s) paced at ``rate_hz``, after the link answers a first ping
+    (``secure_dir``: on a secure bus, this side the ``source``, the echo the ``estimator``, as
+    :func:`bench.echo.secure_config` ``variant`` says; ``routed`` needs the hub's ``port``)."""
+    from bench.echo import PING, PONG, SECURE_PING, SECURE_PONG, secure_config
+
+    port = port or free_port()
+    echo, line = _echo("zenoh", str(port), *((secure_dir, variant) if secure_dir else ()))
+    config = BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=())
+    ping_key, pong_key = PING, PONG
+    if secure_dir:
+        config = secure_config(port, secure_dir, variant, echo=False)
+        ping_key, pong_key = SECURE_PING, SECURE_PONG
     rtts: list[float] = []
 
     def on_pong(sample) -> None:
@@ -102,9 +112,9 @@ def zenoh_round_trips_s(rate_hz: float, n: int) -> list[float]:
     try:
         if line != "ready":
             raise RuntimeError(f"Zenoh echo did not start (said {line!r})")
-        with session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=())) as s:
-            s.declare_subscriber("bench/pong", on_pong)
-            ping = s.declare_publisher("bench/ping", express=True)
+        with session(config) as s:
+            s.declare_subscriber(pong_key, on_pong)
+            ping = s.declare_publisher(ping_key, express=True)
             deadline = time.monotonic() + 10.0
             while not rtts and time.monotonic() < deadline:
                 _paced(rate_hz, 10, lambda: ping.put(_payload()))
@@ -176,10 +186,18 @@ class PipelineRun:
     source_misses_after: int | None
 
 
-def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = ()) -> PipelineRun:
+def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
+             secure_dir: str | None = None) -> PipelineRun:
     """Fly ``neso up`` at ``rate_hz`` for ``DISCARD_S + flight_s`` on a free hub port and probe it
-    (``extra_args``: more ``neso up`` options)."""
-    hub = f"tcp/127.0.0.1:{free_port()}"
+    (``extra_args``: more ``neso up`` options; ``secure_dir``: ``--secure`` with the credentials
+    there, the probe presenting the ``operator`` certificate)."""
+    hub = f"{'tls' if secure_dir else 'tcp'}/127.0.0.1:{free_port()}"
+    probe_bus = BusConfig(connect=(hub,))
+    if secure_dir:
+        from runtime.secure import Credentials
+
+        probe_bus = BusConfig(connect=(hub,), listen=("tls/127.0.0.1:0",), credentials=Credentials(secure_dir, "operator"))
+        extra_args = (*extra_args, "--secure", "--secure-dir", secure_dir)
     keys = Keys("uav1")
     arrivals: dict[int, tuple[float, float]] = {}  # seq → (state_stamp_s, received_s)
     status: list[tuple[int, int]] = []  # (sample, deadline misses) from the source's health
@@ -195,7 +213,7 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = ()) 
         if match:
             status.append((int(match[1]), int(match[2])))
 
-    with session(BusConfig(connect=(hub,))) as probe:
+    with session(probe_bus) as probe:
         probe.declare_subscriber(keys.topic("setpoint"), on_setpoint)
         probe.declare_subscriber(keys.health("source"), on_health)
         run_s = DISCARD_S + flight_s

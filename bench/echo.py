@@ -5,6 +5,9 @@ every datagram back to its sender.
 ``python -m bench.echo zenoh <port>``: a Zenoh peer listening on ``tcp/127.0.0.1:<port>``
 (multicast scouting off) that puts every ``bench/ping`` payload, unchanged, on ``bench/pong``
 (express); prints ``ready`` once declared.
+``python -m bench.echo zenoh <port> <secure dir> <variant>``: the same on a secure bus as the
+``estimator``, echoing ``neso/bench/state`` on ``neso/bench/estimate`` (keys the ACL lets a
+``source`` and the ``estimator`` put); :func:`secure_config` says what each variant is.
 
 Both run until their stdin closes, then close their socket or session.
 """
@@ -15,6 +18,7 @@ import sys
 import threading
 
 PING, PONG = "bench/ping", "bench/pong"
+SECURE_PING, SECURE_PONG = "neso/bench/state", "neso/bench/estimate"
 
 
 def _udp() -> None:
@@ -32,15 +36,41 @@ def _udp() -> None:
     sock.close()
 
 
-def _zenoh(port: int) -> None:
+VARIANTS = ("acl", "tls", "routed")
+
+
+def secure_config(port: int, directory: str, variant: str, *, echo: bool):
+    """The BusConfig of one side of a secure ping-pong on ``port``: ``acl`` — peers linked directly,
+    mutual TLS, the graph's ACL in both (the design ``--secure`` uses); ``tls`` — the same with
+    the ACL off (what the ACL itself costs); ``routed`` — both sides clients of a secure hub
+    listening on ``port`` (the other design: every message through the hub's ACL, two links)."""
+    from runtime.bus import BusConfig
+    from runtime.secure import Credentials
+
+    credentials = Credentials(directory, "estimator" if echo else "source")
+    endpoint = f"tls/127.0.0.1:{port}"
+    if variant == "routed":
+        return BusConfig(connect=(endpoint,), listen=(), mode="client", credentials=credentials)
+    extra = {"access_control": {"enabled": False}} if variant == "tls" else {}
+    if echo:
+        return BusConfig(connect=(), listen=(endpoint,), credentials=credentials, extra=extra)
+    return BusConfig(connect=(endpoint,), listen=(), credentials=credentials, extra=extra)
+
+
+def _zenoh(port: int, secure_dir: str | None = None, variant: str = "acl") -> None:
     from runtime.bus import BusConfig, open_session
 
-    with open_session(BusConfig(connect=(), listen=(f"tcp/127.0.0.1:{port}",))) as session:
-        pong = session.declare_publisher(PONG, express=True)
-        session.declare_subscriber(PING, lambda sample: pong.put(sample.payload.to_bytes()))
+    config = BusConfig(connect=(), listen=(f"tcp/127.0.0.1:{port}",))
+    ping_key, pong_key = PING, PONG
+    if secure_dir:
+        config = secure_config(port, secure_dir, variant, echo=True)
+        ping_key, pong_key = SECURE_PING, SECURE_PONG
+    with open_session(config) as session:
+        pong = session.declare_publisher(pong_key, express=True)
+        session.declare_subscriber(ping_key, lambda sample: pong.put(sample.payload.to_bytes()))
         print("ready", flush=True)
         sys.stdin.read()
 
 
 if __name__ == "__main__":
-    _udp() if sys.argv[1] == "udp" else _zenoh(int(sys.argv[2]))
+    _udp() if sys.argv[1] == "udp" else _zenoh(int(sys.argv[2]), *sys.argv[3:5])

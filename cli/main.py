@@ -19,6 +19,7 @@ SUBCOMMANDS = {
     "train": "cli.train",
     "networks": "cli.networks",
     "demo": "cli.demo",
+    "secure": "cli.secure",
 }
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from cli.busargs import add_bus_arguments, bus_from_args
+from cli.busargs import add_bus_arguments, bus_from_args, refusal_hint
 
 
 def add_parser(subparsers) -> None:
@@ -55,7 +55,7 @@ def run(args) -> int:
             else:
                 reply = set_params(session, keys, args.service, parse_assignments(args.values), args.timeout)
         except ServiceUnavailable as exc:
-            print(f"error: {exc}")
+            print(f"error: {exc}{refusal_hint(args)}")
             return 2
     print(json.dumps(reply.values, indent=2))
     if not reply.ok:
@@ -74,7 +74,7 @@ def run_cmd(args) -> int:
         try:
             reply = command(session, Keys(args.vehicle), args.service, args.name, parse_assignments(args.args), args.timeout)
         except ServiceUnavailable as exc:
-            print(f"error: {exc}")
+            print(f"error: {exc}{refusal_hint(args)}")
             return 2
     print(("ok" if reply.ok else "refused") + (f": {reply.message}" if reply.message else ""))
     return 0 if reply.ok else 1

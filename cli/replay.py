@@ -73,7 +73,7 @@ def _to_bus(args, rec) -> int:
     origin = origin_of(rec)
     print(f"replaying {args.file} ({schedule[-1][0]:.1f} s, {len(schedule)} messages; {origin}) as neso/{vehicle}/ "
           f"at ×{args.speed:g}", flush=True)
-    with open_session(bus_from_args(args)) as session:
+    with open_session(bus_from_args(args, identity="replay")) as session:
         n = publish_schedule(session, vehicle, schedule, speed=args.speed, stop=stop,
                              provenance=(os.path.abspath(args.file), origin),
                              on_progress=lambda t, m: print(f"  t = {t:.1f} s (sample {m.seq})", flush=True))

@@ -19,4 +19,5 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     role = GRAPH[args.service]
-    return importlib.import_module(role.module).run(args, bus_from_args(args, role=role.bus_role))
+    bus = bus_from_args(args, role=role.bus_role, identity=role.cert_name)
+    return importlib.import_module(role.module).run(args, bus)

@@ -1,7 +1,7 @@
 """``neso up``: the whole system on this machine, every role its own process, from the declared graph."""
 from __future__ import annotations
 
-from runtime.bus import DEFAULT_HUB
+from runtime.bus import DEFAULT_HUB, SECURE_HUB
 from runtime.graph import ROLES
 from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
 
@@ -29,7 +29,7 @@ def add_parser(subparsers) -> None:
                         "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK)")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
-    p.add_argument("--hub", default=DEFAULT_HUB, help=f"hub endpoint (default {DEFAULT_HUB})")
+    p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
     p.add_argument("--no-record", dest="record", action="store_false", help="no recorder (default: record every flight)")
@@ -39,11 +39,14 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-dashboard", action="store_false", dest="dashboard", help="do not start the web dashboard")
     p.add_argument("--dashboard-host", default="127.0.0.1", help="dashboard address (default loopback only)")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
+    from cli.busargs import add_secure_arguments
+
+    add_secure_arguments(p.add_argument_group("security"))
 
 
 def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     """The ``neso run`` command line of one role for one vehicle."""
-    common = ["--vehicle", vehicle, "--connect", args.hub]
+    common = ["--vehicle", vehicle, "--connect", hub_endpoint(args)] + secure_argv(args)
     if args.low_latency:
         common.append("--low-latency")
     if args.lockstep:
@@ -76,6 +79,33 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     return python_module_argv("cli.main", "run", role, *common, *specific)
 
 
+def hub_endpoint(args) -> str:
+    return args.hub or (SECURE_HUB if args.secure else DEFAULT_HUB)
+
+
+def secure_argv(args) -> list[str]:
+    """The options that put a child on the secure bus (each presents its role's certificate)."""
+    if not args.secure:
+        return []
+    return ["--secure"] + (["--secure-dir", args.secure_dir] if args.secure_dir else [])
+
+
+def check_credentials(args, roles) -> str:
+    """Why ``neso up --secure`` cannot start (one line), or "" when every certificate is there."""
+    if not args.secure:
+        return ""
+    from runtime.secure import Credentials, SecureSetupError, default_dir
+
+    if not hub_endpoint(args).startswith("tls/"):
+        return f"--hub {args.hub}: a secure bus speaks tls/ only (e.g. {SECURE_HUB})"
+    for role in roles:
+        try:
+            Credentials(args.secure_dir or default_dir(), role.cert_name).check()
+        except SecureSetupError as exc:
+            return str(exc)
+    return ""
+
+
 def role_enabled(args, role) -> bool:
     """Whether ``neso up`` starts ``role``: always, or when its ``enabled_by`` option is set
     (``mavlink_vehicle`` is derived from ``--vehicle mavlink``)."""
@@ -93,7 +123,7 @@ def build_specs(args) -> list[ProcessSpec]:
         if not role_enabled(args, role):
             continue
         if role.bus_role == "router":
-            argv = python_module_argv("cli.main", "run", role.name, "--listen", args.hub)
+            argv = python_module_argv("cli.main", "run", role.name, "--listen", hub_endpoint(args), *secure_argv(args))
             if args.low_latency:
                 argv += ("--low-latency",)
             specs.append(ProcessSpec(role.name, argv))
@@ -115,13 +145,18 @@ def run(args) -> int:
         print("neso up: --vehicle mavlink runs in real time only (MAVSDK and the MAVLink link keep their own clock)",
               flush=True)
         return 2
+    problem = check_credentials(args, [r for r in ROLES if role_enabled(args, r)])
+    if problem:
+        print(f"neso up: {problem}", flush=True)
+        return 2
     supervisor = Supervisor(build_specs(args), echo=lambda line: print(line, flush=True))
-    print(f"neso up: hub {args.hub}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
+    security = " (secure: mutual TLS, access control)" if args.secure else ""
+    print(f"neso up: hub {hub_endpoint(args)}{security}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
-    print("  live parameters:  neso params get estimator | neso params set estimator pathway=eso lipschitz_bound=0.5",
-          flush=True)
-    print("  missions:         neso cmd controller landing_test | takeoff | hover | lemniscate | land | arm | hold | abort",
-          flush=True)
+    flag = " --secure" if args.secure else ""
+    print(f"  live parameters:  neso params get estimator{flag} | neso params set estimator pathway=eso{flag}", flush=True)
+    print(f"  missions:         neso cmd controller landing_test{flag}  (takeoff | hover | lemniscate | land | arm | hold | "
+          "abort)", flush=True)
     if args.dashboard:
         print(f"  dashboard:        http://{args.dashboard_host}:{args.dashboard_port}", flush=True)
     print("  stop:             Ctrl-C", flush=True)

@@ -20,9 +20,10 @@ import numpy as np
 
 from recordings.offline import run_estimator, sample_period_s
 from recordings.reader import Recording, RecordingError, read_recording, rerun_cli
+from runtime.graph import OUTSIDERS
 from runtime.schema import Keys, Message, ReplayMsg, StateMsg
 
-REPLAYED = ("state", "truth", "estimate", "setpoint", "reference")
+REPLAYED = next(o for o in OUTSIDERS if o.name == "replay").publishes  # what its certificate may put
 
 
 def viewer_argv(path: str | Path, *, web: bool = False, web_port: int = 9090, grpc_port: int = 9876) -> list[str]:

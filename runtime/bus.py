@@ -10,6 +10,10 @@ started before the hub links up within half a second of it.
 For several machines: give ``connect`` (the hub's or a ``zenohd`` router's endpoint) and
 ``listen`` (an address the other machines can reach), or a whole Zenoh config file
 (``config_file``), whose settings the explicit ones then override.
+
+Secure (``credentials``, :mod:`runtime.secure`): ``tls/`` endpoints only, mutual TLS as the
+credentials' identity, and the graph's access-control list (:mod:`runtime.acl`) on this
+session's ingress, in every session alike (peers link directly, past the hub).
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ import json
 from dataclasses import dataclass, field
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
+SECURE_HUB = "tls/127.0.0.1:7447"
 MODES = ("peer", "client", "router")
 
 
@@ -37,6 +42,7 @@ class BusConfig:
     low_latency: bool = False
     retry_period_init_ms: int = 100
     retry_period_max_ms: int = 500
+    credentials: object = None  # runtime.secure.Credentials: TLS, mTLS and the ACL
     extra: dict = field(default_factory=dict)  # raw "path": json-value settings, applied last
 
     def __post_init__(self) -> None:
@@ -45,6 +51,8 @@ class BusConfig:
         for endpoint in (*self.connect, *self.listen):
             if "/" not in endpoint:
                 raise ValueError(f"endpoint {endpoint!r} must look like tcp/127.0.0.1:7447")
+            if self.credentials is not None and not endpoint.startswith("tls/"):
+                raise ValueError(f"endpoint {endpoint!r}: a secure bus speaks tls/ only (e.g. {SECURE_HUB})")
 
     def settings(self) -> dict[str, object]:
         """The config path → value pairs this applies on top of Zenoh's defaults (or the file)."""
@@ -67,6 +75,11 @@ class BusConfig:
         if self.low_latency:
             out["transport/unicast/lowlatency"] = True
             out["transport/unicast/qos/enabled"] = False
+        if self.credentials is not None:
+            from runtime.acl import access_control
+
+            out["transport/link/tls"] = self.credentials.tls()
+            out["access_control"] = access_control()
         out.update(self.extra)
         return out
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import time
 import uuid
 
-from runtime.schema import CommandReply, CommandRequest, Keys, ParamReply, ParamRequest, SchemaError
+from runtime.schema import OFFER_COMMANDS, CommandReply, CommandRequest, Keys, ParamReply, ParamRequest, SchemaError
 
 
 class ServiceUnavailable(RuntimeError):
@@ -37,6 +37,11 @@ def get_params(session, keys: Keys, service: str, timeout_s: float = 2.0) -> Par
     return _query(session, keys.param(service), ParamRequest(op="get").to_bytes(), ParamReply, timeout_s)
 
 
+def read_params(session, keys: Keys, service: str, timeout_s: float = 2.0) -> ParamReply:
+    """The parameters, asked on the read-only key every identity of a secure bus may query."""
+    return _query(session, keys.params(service), ParamRequest(op="get").to_bytes(), ParamReply, timeout_s)
+
+
 def set_params(session, keys: Keys, service: str, values: dict, timeout_s: float = 2.0) -> ParamReply:
     return _query(session, keys.param(service), ParamRequest(op="set", values=values).to_bytes(), ParamReply, timeout_s)
 
@@ -44,7 +49,8 @@ def set_params(session, keys: Keys, service: str, values: dict, timeout_s: float
 def command(session, keys: Keys, service: str, name: str, args: dict | None = None,
             timeout_s: float = 2.0) -> CommandReply:
     """Ask ``service`` to do ``name``. The request carries a fresh ``request`` id (unless ``args``
-    has one), so the service does it once however often the query is repeated."""
+    has one), so the service does it once however often the query is repeated. An ``offer`` goes
+    to the service's ``offer`` key (on a secure bus only the trainer may send it)."""
     args = {"request": uuid.uuid4().hex, **(args or {})}
-    return _query(session, keys.cmd(service), CommandRequest(name=name, args=args).to_bytes(), CommandReply,
-                  timeout_s)
+    key = keys.offer(service) if name in OFFER_COMMANDS else keys.cmd(service)
+    return _query(session, key, CommandRequest(name=name, args=args).to_bytes(), CommandReply, timeout_s)

@@ -26,6 +26,24 @@ class Role:
     per_vehicle: bool = True  # False: one process for the whole bus (it watches every vehicle)
     enabled_by: str = ""  # `neso up` starts it only when this boolean option is set ("": always)
     watches: tuple[str, ...] = ()  # topics a watcher shows when someone publishes them (of every vehicle)
+    identity: str = ""  # certificate common name on a secure bus ("": the role's name)
+    offers_to: tuple[str, ...] = ()  # services it offers networks to (their ``offer`` key; runtime/acl.py)
+
+    @property
+    def cert_name(self) -> str:
+        return self.identity or self.name
+
+
+@dataclass(frozen=True)
+class Outsider:
+    """An identity on a secure bus that is no service of the graph: a person's tools.
+    ``publishes``: stream topics it may put for any vehicle; ``steers``: it may send commands
+    and set parameters (query ``cmd/*`` and ``param/*``)."""
+
+    name: str
+    description: str
+    publishes: tuple[str, ...] = ()
+    steers: bool = False
 
 
 def _topics(*names: str) -> dict[str, type[Message]]:
@@ -45,14 +63,23 @@ ROLES: tuple[Role, ...] = (
          publishes=_topics("recording"), subscribes=_topics("state", "truth", "estimate", "setpoint", "reference"),
          enabled_by="record"),
     Role("trainer", "services.trainer", "trains, certifies and stores networks from recordings; offers them to the estimator",
-         publishes={}, subscribes=_topics("network"), enabled_by="trainer"),
+         publishes={}, subscribes=_topics("network"), enabled_by="trainer", offers_to=("estimator",)),
     Role("px4_gateway", "services.px4_gateway",
          "setpoints → PX4 offboard attitude through MAVSDK; vehicle telemetry back; mocap → external vision",
          publishes=_topics("telemetry"), subscribes=_topics("setpoint", "state"), enabled_by="mavlink_vehicle"),
     Role("dashboard", "dashboard.service", "operator's web dashboard (viser): watches every vehicle, steers by "
          "parameters and commands", publishes={}, subscribes={}, per_vehicle=False, enabled_by="dashboard",
          watches=("state", "truth", "estimate", "setpoint", "reference", "telemetry", "recording", "network",
-                  "replay")),
+                  "replay"),
+         identity="operator"),
+)
+
+# Who else may be on a secure bus (certificates from `neso secure init`, rights in runtime/acl.py).
+OUTSIDERS: tuple[Outsider, ...] = (
+    Outsider("operator", "the dashboard and the neso CLI (params, cmd, train): sets parameters, sends commands",
+             steers=True),
+    Outsider("replay", "neso replay --to-bus: a recorded flight published again",
+             publishes=("state", "truth", "estimate", "setpoint", "reference", "replay")),
 )
 
 GRAPH: dict[str, Role] = {role.name: role for role in ROLES}
@@ -63,6 +90,11 @@ def role(name: str) -> Role:
         return GRAPH[name]
     except KeyError:
         raise KeyError(f"unknown service {name!r}; known: {list(GRAPH)}") from None
+
+
+def identities(roles: tuple[Role, ...] = ROLES, outsiders: tuple[Outsider, ...] = OUTSIDERS) -> list[str]:
+    """Every certificate common name a secure bus knows, each once, in declaration order."""
+    return list(dict.fromkeys([r.cert_name for r in roles] + [o.name for o in outsiders]))
 
 
 def check_graph(roles: tuple[Role, ...] = ROLES) -> list[str]:
@@ -82,4 +114,7 @@ def check_graph(roles: tuple[Role, ...] = ROLES) -> list[str]:
                 problems.append(f"{r.name} subscribes {topic}, published by {pubs or 'nobody'} (need exactly one)")
             if TOPICS.get(topic) is not cls:
                 problems.append(f"{r.name} subscribes {topic} as {cls.__name__}, schema says {TOPICS.get(topic)}")
+    names = {r.name for r in roles}
+    for r in roles:
+        problems += [f"{r.name} offers networks to {t}, which is no role" for t in r.offers_to if t not in names]
     return problems

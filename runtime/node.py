@@ -21,11 +21,11 @@ import traceback
 from typing import Any, Callable
 
 from runtime.bus import BusConfig, close_session, open_session
-from runtime.graph import role as graph_role
+from runtime.graph import ROLES, role as graph_role
 from runtime.health import HealthStats
 from runtime.params import ParamSet
-from runtime.schema import (CommandReply, CommandRequest, EventMsg, Keys, Message, ParamReply, ParamRequest,
-                            ParamStateMsg, SchemaError)
+from runtime.schema import (OFFER_COMMANDS, CommandReply, CommandRequest, EventMsg, Keys, Message, ParamReply,
+                            ParamRequest, ParamStateMsg, SchemaError)
 
 HEALTH_PERIOD_S = 1.0
 CommandHandler = Callable[[str, dict], tuple[bool, str]]
@@ -166,14 +166,17 @@ class Node:
         self._command_handler = handler
         self._unlocked_commands = frozenset(unlocked)
 
-    def _on_param_query(self, query) -> None:
+    def _on_param_query(self, query, read_only: bool = False) -> None:
         try:
             request = ParamRequest.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
         except SchemaError as exc:
             self.stats.reject("param", str(exc))
             query.reply_err(ParamReply(ok=False, service=self.service, values={}, error=str(exc)).to_bytes())
             return
-        if self.params is None:
+        if read_only and request.op != "get":
+            reply = ParamReply(ok=False, service=self.service, values={},
+                               error=f"{self.keys.params(self.service)} is read only: set on {self.keys.param(self.service)}")
+        elif self.params is None:
             reply = ParamReply(ok=request.op == "get", service=self.service, values={},
                                error="" if request.op == "get" else f"{self.service} has no parameters")
         elif request.op == "get":
@@ -188,7 +191,7 @@ class Node:
             self.log(f"param set {request.values}: " + ("accepted" if ok else f"refused: {error}"))
         query.reply(query.key_expr, reply.to_bytes())
 
-    def _on_command_query(self, query) -> None:
+    def _on_command_query(self, query, offer_key: bool = False) -> None:
         try:
             request = CommandRequest.from_bytes(query.payload.to_bytes() if query.payload is not None else b"")
         except SchemaError as exc:
@@ -196,7 +199,11 @@ class Node:
             query.reply_err(CommandReply(ok=False, service=self.service, message=str(exc)).to_bytes())
             return
         args = {k: v for k, v in request.args.items() if k != "request"}
-        if self._command_handler is None:
+        wrong_key = (request.name in OFFER_COMMANDS) != offer_key  # an offer has its own key (the ACL tells them apart)
+        if wrong_key:
+            ok, message = False, (f"{request.name} goes to {self.keys.offer(self.service)}" if not offer_key
+                                  else f"{self.keys.offer(self.service)} takes only {', '.join(OFFER_COMMANDS)}")
+        elif self._command_handler is None:
             ok, message = False, f"{self.service} takes no commands"
         else:
             def execute() -> tuple[bool, str]:
@@ -249,6 +256,11 @@ class Node:
             self.log(f"parameters {self.params.values()}")
         self._declared.append(self.session.declare_queryable(self.keys.param(self.service), self._on_param_query))
         self._declared.append(self.session.declare_queryable(self.keys.cmd(self.service), self._on_command_query))
+        self._declared.append(self.session.declare_queryable(  # parameters read by anyone, set by the operator only
+            self.keys.params(self.service), lambda query: self._on_param_query(query, read_only=True)))
+        if any(self.service in r.offers_to for r in ROLES):
+            self._declared.append(self.session.declare_queryable(
+                self.keys.offer(self.service), lambda query: self._on_command_query(query, offer_key=True)))
         self.stats.report()  # the first report pays numpy's one-off percentile set-up (~7 ms): not mid-flight
         threading.Thread(target=self._health_loop, name=f"{self.service}-health", daemon=True).start()
         self._declared.append(self.session.liveliness().declare_token(self.keys.alive(self.service)))

@@ -16,8 +16,11 @@ Keys (one vehicle ``<v>``; several vehicles share a bus under their own prefixes
 ``neso/<v>/health/<service>``         HealthMsg        1 Hz: rate, latency, rejected, staleness
 ``neso/<v>/alive/<service>``          (liveliness)     token while the service runs
 ``neso/<v>/param/<service>``          (queryable)      ParamRequest → ParamReply
-``neso/<v>/params/<service>``         ParamStateMsg    broadcast when parameters take effect
+``neso/<v>/params/<service>``         ParamStateMsg    broadcast when parameters take effect; also a
+                                                       queryable: ParamRequest get → ParamReply (read only)
 ``neso/<v>/cmd/<service>``            (queryable)      CommandRequest → CommandReply
+``neso/<v>/offer/<service>``          (queryable)      CommandRequest ``offer`` → CommandReply (a network
+                                                       offered; its own key so the ACL can tell it apart)
 ====================================  ===============  =============================================
 
 Payloads are msgpack maps with ``v`` (schema version) and ``type``; every message class is a
@@ -488,6 +491,9 @@ class ReplayMsg(Message):
     playing: bool = f(_flag)
 
 
+OFFER_COMMANDS = ("offer",)  # commands that travel on the ``offer`` key, not ``cmd``
+
+
 # -- keys -----------------------------------------------------------------------------------------
 # Stream topics: name → message type. The per-service keys (event, health, alive, param,
 # params, cmd) exist for every service and are built by Keys.
@@ -542,6 +548,9 @@ class Keys:
 
     def cmd(self, service: str) -> str:
         return self._per_service("cmd", service)
+
+    def offer(self, service: str) -> str:
+        return self._per_service("offer", service)
 
     def every(self, kind: str) -> str:
         """All services' keys of one kind (``event``, ``health``, ``alive``, ``params``)."""

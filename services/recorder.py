@@ -451,7 +451,7 @@ def config_from_args(args) -> RecorderConfig:
 
 def run(args, bus) -> int:
     from recordings.layout import channel_of
-    from runtime.client import ServiceUnavailable, get_params
+    from runtime.client import ServiceUnavailable, read_params
     from runtime.graph import ROLES
     from runtime.node import Node, run_node
 
@@ -466,7 +466,7 @@ def run(args, bus) -> int:
         out = {}
         for service in services:
             try:
-                out[service] = get_params(node.session, node.keys, service, timeout_s=0.3).values
+                out[service] = read_params(node.session, node.keys, service, timeout_s=0.3).values
             except ServiceUnavailable:
                 pass
         return out

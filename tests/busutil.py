@@ -24,6 +24,23 @@ def peer(endpoint: str) -> BusConfig:
     return BusConfig(connect=(endpoint,))
 
 
+def secure_peer(endpoint: str, directory: str, identity: str = "operator", *, mode: str = "peer") -> BusConfig:
+    """A session on a secure bus as ``identity`` (its certificate in ``directory``); a ``client``
+    talks through the hub only (what it sends meets the hub's ACL, which logs refusals)."""
+    from runtime.secure import Credentials
+
+    return BusConfig(connect=(endpoint,), listen=("tls/127.0.0.1:0",) if mode == "peer" else (), mode=mode,
+                     credentials=Credentials(directory, identity))
+
+
+def secure_init(directory: str) -> str:
+    """`neso secure init DIR` in a subprocess (the real command); DIR."""
+    done = subprocess.run([sys.executable, "-m", "cli.main", "secure", "init", directory], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return directory
+
+
 @contextmanager
 def session(config: BusConfig):
     s = open_session(config)

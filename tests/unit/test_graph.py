@@ -50,15 +50,17 @@ def test_docker_compose_has_one_container_per_role_with_explicit_endpoints():
     assert set(services) == set(GRAPH)
     hub = services["hub"]
     assert hub["image"].startswith("eclipse/zenoh:")
-    assert "--no-multicast-scouting" in hub["command"]
-    assert "tcp/0.0.0.0:7447" in hub["command"]
+    assert hub["command"] == ["-c", "/secure/compose/router.json5"]  # `neso secure init` writes it: TLS, ACL
+    assert any(v.endswith(":/secure:ro") for v in hub["volumes"])
     for name, svc in services.items():
         if GRAPH[name].bus_role == "router":
             continue
         cmd = svc["command"]
         assert cmd[:2] == ["run", name], name
-        assert cmd[cmd.index("--connect") + 1] == "tcp/hub:7447", name
-        assert "--listen" in cmd, name
+        assert cmd[cmd.index("--connect") + 1] == "tls/hub:7447", name
+        assert cmd[cmd.index("--listen") + 1].startswith("tls/"), name
+        assert "--secure" in cmd and cmd[cmd.index("--secure-dir") + 1] == "/secure", name
+        assert any(v.endswith(":/secure:ro") for v in svc["volumes"])
         assert "hub" in svc["depends_on"], name
         assert any(v.endswith(":/data/networks") for v in svc["volumes"])
         assert any(v.endswith(":/data/recordings") for v in svc["volumes"])
