@@ -11,6 +11,8 @@ Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certi
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
 (:mod:`bench.gateway`, ~25 s).
 Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
+Then the stability certificates: max certified L_N of each method over a gain grid, the cost of
+``best_certificate`` cold and cached, and each bound against a simulated worst case (:mod:`bench.certificate`, ~1 min).
 Pass ``--quick`` to skip the paper pipeline and shorten every section.
 """
 from __future__ import annotations
@@ -89,6 +91,11 @@ def main(argv: list[str]) -> int:
     from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows
 
     _print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
+
+    from bench.certificate import print_tables
+
+    print(flush=True)
+    print_tables(_print_table)
     return 0
 
 
