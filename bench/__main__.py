@@ -15,6 +15,8 @@ Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink v
 (:mod:`bench.gateway`, ~25 s).
 Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
 Then importing PX4 logs: the shared CubeOrange log and a 20-minute log (:mod:`bench.px4_import`, ~40 s).
+Then the stability certificates: max certified L_N of each method over a gain grid, the cost of
+``best_certificate`` cold and cached, and each bound against a simulated worst case (:mod:`bench.certificate`, ~1 min).
 Pass ``--quick`` to skip the paper pipeline and shorten every section.
 """
 from __future__ import annotations
@@ -105,6 +107,10 @@ def main(argv: list[str]) -> int:
     from bench.px4_import import COLUMNS as PX4_IMPORT_COLUMNS, px4_import_rows
 
     _print_table(PX4_IMPORT_COLUMNS, px4_import_rows(quick))
+    from bench.certificate import print_tables
+
+    print(flush=True)
+    print_tables(_print_table)
     return 0
 
 

@@ -1,16 +1,18 @@
 """``neso certify``: the small-gain stability certificate of the paper's Section IV.
 
-Exit code 0 when the certificate holds for the chosen method (``both``: the tight one), 1 when it does
-not, 2 for bad input (a network file that cannot be read, invalid gains).
+Exit code 0 when the certificate holds for the chosen method (``both``: the tight one; ``all``, the default:
+the LMI one, the tightest), 1 when it does not, 2 for bad input (a network file that cannot be read,
+invalid gains).
 
 ``--network FILE|default``: the L_N certified is the network's exact physical Lipschitz constant (the
 SVD product of its weights with the z-scores folded in); ``default`` is the network ``neso up`` flies.
 The gains default to the controller's (z axis) and the observer bandwidth to the estimator's.
 
 ``--json`` output: the chosen method's fields at top level (at least ``holds``, ``alpha_e``, ``alpha_o``,
-``ultimate_bound``, ``max_certified_lipschitz``); with ``--method both`` (default) the top level is the TIGHT
-certificate and both full results are nested under ``"literal"`` and ``"tight"``; with ``--network`` also
-``network`` (path, id, inputs, both bounds). Non-finite numbers are ``null``.
+``ultimate_bound``, ``max_certified_lipschitz``); with ``--method both`` the top level is the TIGHT certificate
+and both full results are nested under ``"literal"`` and ``"tight"``; with ``--method all`` (default) the top level
+is the LMI certificate and all three are nested under their names; with ``--network`` also ``network`` (path,
+id, inputs, both bounds). Non-finite numbers are ``null``.
 Units: ``L_N`` in (m/s²) per unit of the mixed-SI network input z (physical, not normalised); bounds on
 ``‖E‖``, ``E = [e, ė, x̃1, x̃2, f̃]`` in mixed SI (m, m/s, m, m/s, m/s²).
 """
@@ -57,9 +59,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--lambda-c-rule", choices=("corrected", "paper"), default="corrected",
                    help="lambda_c: 'corrected' sqrt(kp^2+(kd+1)^2) covers the |de/dt| term the paper's Lemma 1 "
                    "drops; 'paper' sqrt(kp^2+kd^2) as printed (default %(default)s)")
-    p.add_argument("--method", choices=("literal", "tight", "both"), default="both",
-                   help="literal: paper as written (Q=I, Young splits); tight: optimised scalings/weights "
-                   "(same assumptions); both (default): report both, verdict from tight")
+    p.add_argument("--method", choices=("literal", "tight", "lmi", "both", "all"), default="all",
+                   help="literal: paper as written (Q=I, Young splits); tight: optimised scalings/weights; "
+                   "lmi: quadratic V=E'PE by SDP (cvxpy + Clarabel), re-verified in numpy (all: same assumptions); "
+                   "both: literal and tight, verdict from tight; all (default): the three, verdict from lmi")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=run)
     return p
@@ -111,12 +114,15 @@ def _text(res) -> list[str]:
     if res.method == "tight":
         lines.append(f"  observer scaling T_o = {[float(f'{t:.4g}') for t in res.scale_obs]}  "
                      f"weight s = {res.weight_s:.4g}")
+    if res.method == "lmi" and res.holds:
+        lines.append(f"  P {res.structure}, V' <= -alpha V + mu C_f^2: alpha = {_fmt(res.alpha)} 1/s, "
+                     f"mu = {_fmt(res.mu)}, re-verified in numpy")
     return lines
 
 
 def run(args) -> int:
     """Compute, print (text or ``--json``) and return 0 if the certificate holds, 1 otherwise."""
-    from neso.certificate import certify_literal, certify_tight
+    from neso.certificate import certify_lmi, certify_literal, certify_tight
 
     network = None
     try:
@@ -128,17 +134,18 @@ def run(args) -> int:
         print(f"neso certify: {exc}")
         return 2
     results = {}
-    if args.method in ("literal", "both"):
+    if args.method in ("literal", "both", "all"):
         results["literal"] = certify_literal(inputs)
-    if args.method in ("tight", "both"):
+    if args.method in ("tight", "both", "all"):
         results["tight"] = certify_tight(inputs)
-    main = results["tight"] if args.method == "both" else results[args.method]
+    if args.method in ("lmi", "all"):
+        results["lmi"] = certify_lmi(inputs)
+    main = results[{"both": "tight", "all": "lmi"}.get(args.method, args.method)]
 
     if args.json:
         out = main.to_json_dict()
-        if args.method == "both":
-            out["literal"] = results["literal"].to_json_dict()
-            out["tight"] = results["tight"].to_json_dict()
+        if args.method in ("both", "all"):
+            out.update({name: res.to_json_dict() for name, res in results.items()})
         out["inputs"] = {
             "kp": inputs.kp, "kd": inputs.kd, "omega_o": inputs.omega_o, "lipschitz": inputs.lipschitz,
             "L1": inputs.L_1, "Lu": inputs.L_u, "ref_vel_max": inputs.ref_vel_max,
@@ -158,6 +165,6 @@ def run(args) -> int:
               f"C_f={inputs.C_f:.4g} m/s^3, lambda_c={inputs.lambda_c:.4g} ({inputs.lambda_c_rule})")
         for res in results.values():
             print("\n".join(_text(res)))
-        if args.method == "both":
-            print(f"verdict (tight): {'HOLDS' if main.holds else 'FAILS'}")
+        if args.method in ("both", "all"):
+            print(f"verdict ({main.method}): {'HOLDS' if main.holds else 'FAILS'}")
     return 0 if main.holds else 1

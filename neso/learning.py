@@ -210,6 +210,6 @@ def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float) -> float:
     """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown."""
     if recipe.lipschitz_bound is not None:
         return recipe.lipschitz_bound
-    from neso.certificate import largest_certified_lipschitz
+    from neso.certificate import max_certified_lipschitz_best
 
-    return recipe.certified_fraction * largest_certified_lipschitz(kp, kd, omega_o)
+    return recipe.certified_fraction * max_certified_lipschitz_best(kp, kd, omega_o)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from neso.certificate import flight_certificate, largest_certified_lipschitz
+from neso.certificate import flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
@@ -117,7 +117,7 @@ class ControllerCore:
         """Compute (and cache) the certified bound for the proposed z gains, outside any lock."""
         inputs = self._certificate_inputs()
         if inputs is not None:
-            largest_certified_lipschitz(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
+            max_certified_lipschitz_best(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
 
     def check_gains(self, values: dict) -> Refusal | None:
         """Refuse (overridably) z gains under which the network flown is not certified."""

@@ -59,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neso.certificate import FlightCertificate, flight_certificate, largest_certified_lipschitz
+from neso.certificate import FlightCertificate, flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig
@@ -205,7 +205,7 @@ class EstimatorCore:
         return None if cert.holds else f"controller gains changed: {cert.text()}"
 
     def prepare(self, values: dict) -> None:
-        largest_certified_lipschitz(self.gains_z[0], self.gains_z[1], self.config.omega_o_rps)  # warm the cache
+        max_certified_lipschitz_best(self.gains_z[0], self.gains_z[1], self.config.omega_o_rps)  # warm the cache
 
     # -- live parameters ----------------------------------------------------------------
     def check(self, values: dict) -> str | Refusal | None:

@@ -18,7 +18,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from neso.certificate import largest_certified_lipschitz
+from neso.certificate import max_certified_lipschitz_best
 from neso.control import ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
@@ -384,7 +384,7 @@ def _bound_key(value: float) -> str:
 
 def _network_details(result, config: PaperConfig) -> dict:
     net = result.network
-    cert = largest_certified_lipschitz(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
+    cert = max_certified_lipschitz_best(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
     return {
         "bound": net.lipschitz_bound,
         "bound_units": net.bound_units,

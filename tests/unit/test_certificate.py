@@ -13,16 +13,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import neso.certificate as certificate
 from neso.certificate import (
     CertificateInputs,
+    best_certificate,
+    certify,
+    certify_lmi,
     certify_literal,
     certify_tight,
+    lmi_matrix,
     lyapunov_residual,
     max_certified_lipschitz,
+    max_certified_lipschitz_best,
+    negative_margin,
     observer_matrices,
     tracking_matrices,
     verify_certificate,
 )
+
+from tests.unit.helpers import lemma1_bound, paper_error_system, worst_case_run
 
 REPO = Path(__file__).resolve().parents[2]
 GAIN_SETS = [(10.0, 6.0, 20.0), (10.0, 6.0, 10.0), (4.0, 4.0, 10.0), (25.0, 10.0, 30.0)]
@@ -30,6 +39,12 @@ GAIN_SETS = [(10.0, 6.0, 20.0), (10.0, 6.0, 10.0), (4.0, 4.0, 10.0), (25.0, 10.0
 
 def inputs(kp=10.0, kd=6.0, w=20.0, lip=0.01, **kw) -> CertificateInputs:
     return CertificateInputs(kp=kp, kd=kd, omega_o=w, lipschitz=lip, **kw)
+
+
+def fast(method):
+    """The certificate function with the cheap verdict path (the one the bisection uses)."""
+    return {"literal": certify_literal, "tight": lambda i: certify_tight(i, optimise_bound=False),
+            "lmi": lambda i: certify_lmi(i, optimise_bound=False)}[method]
 
 
 # ------------------------------------------------------------------------------------- Lyapunov algebra
@@ -64,25 +79,25 @@ def test_literal_max_lipschitz_for_paper_gains_is_about_0p018():
     assert corrected == pytest.approx(0.017695, rel=1e-3)
 
 
-@pytest.mark.parametrize("method", ["literal", "tight"])
+@pytest.mark.parametrize("method", ["literal", "tight", "lmi"])
 def test_bisection_matches_closed_form_max_lipschitz(method):
     inp = inputs(lip=0.0)
-    res = certify_literal(inp) if method == "literal" else certify_tight(inp, optimise_bound=False)
+    res = fast(method)(inp)
     assert max_certified_lipschitz(inp, method) == pytest.approx(res.max_certified_lipschitz, rel=1e-7)
 
 
 # ------------------------------------------------------------------------------------- verdict properties
 
 
-@pytest.mark.parametrize("method", ["literal", "tight"])
+@pytest.mark.parametrize("method", ["literal", "tight", "lmi"])
 def test_verdict_is_monotone_in_lipschitz(method):
     base = inputs(lip=0.0)
-    lmax = (certify_literal(base) if method == "literal" else certify_tight(base)).max_certified_lipschitz
+    lmax = fast(method)(base).max_certified_lipschitz
     sweep = np.linspace(0.0, 2.0 * lmax, 50)
     verdicts = []
     for lip in sweep:
         inp = replace(base, lipschitz=float(lip))
-        res = certify_literal(inp) if method == "literal" else certify_tight(inp, optimise_bound=False)
+        res = fast(method)(inp)
         verdicts.append(res.holds)
         # α_e, α_o > 0 iff holds
         assert res.holds == (res.alpha_e > 0 and res.alpha_o > 0)
@@ -117,10 +132,10 @@ def test_tight_certifies_at_least_the_literal_lipschitz(gains):
 
 
 @pytest.mark.parametrize("gains", GAIN_SETS)
-@pytest.mark.parametrize("method", ["literal", "tight"])
+@pytest.mark.parametrize("method", ["literal", "tight", "lmi"])
 def test_zero_lipschitz_holds_for_hurwitz_gains(gains, method):
     inp = inputs(*gains, lip=0.0)
-    res = certify_literal(inp) if method == "literal" else certify_tight(inp)
+    res = certify(inp, method)
     assert res.holds and res.alpha > 0 and verify_certificate(inp, res)
 
 
@@ -146,7 +161,7 @@ def test_literal_bound_at_zero_lipschitz_is_the_eso_only_value():
 
 def test_n_axes_does_not_change_the_certificate():
     one, three = inputs(lip=0.3), inputs(lip=0.3, n_axes=3)
-    for fn in (certify_literal, certify_tight):
+    for fn in (certify_literal, certify_tight, certify_lmi):
         a, b = fn(one), fn(three)
         assert a.holds == b.holds
         assert a.max_certified_lipschitz == pytest.approx(b.max_certified_lipschitz, rel=1e-12)
@@ -221,13 +236,148 @@ def test_literal_vdot_inequality_of_theorem_1():
     assert np.all(vdot <= rhs + 1e-9 * np.abs(rhs))
 
 
+# ------------------------------------------------------------------------------------- LMI certificate
+
+
+@pytest.mark.parametrize("gains", GAIN_SETS)
+def test_lmi_contains_tight_and_full_contains_block(gains):
+    """Tight's V with the multipliers of the module docstring satisfies the block LMI at 0.99 of tight's maximum,
+    so the LMI certifies at least as much; full at least as much as block."""
+    lt = certify_tight(inputs(*gains, lip=0.0)).max_certified_lipschitz
+    inp = inputs(*gains, lip=0.99 * lt)
+    r = certify_tight(inp, optimise_bound=False)
+    assert r.holds
+    a, p = r.weight_s * r.lambda_e, r.weight_s * r.pe_be_norm / r.scale_obs[2]
+    q = r.c_pb * inp.gamma_e * r.kappa_e
+    tau_e, tau_o = a * r.c_pb / ((p + q) * inp.gamma_e * r.kappa_e), r.c_pb / (inp.gamma_etilde * r.kappa_o)
+    p_tight = np.zeros((5, 5))
+    p_tight[:2, :2], p_tight[2:, 2:] = r.weight_s * r.P_e, r.P_obs
+    assert negative_margin(*lmi_matrix(inp, p_tight, tau_e, tau_o)) > 0
+    block = certify_lmi(inputs(*gains, lip=0.0), structure="block").max_certified_lipschitz
+    full = certify_lmi(inputs(*gains, lip=0.0), structure="full").max_certified_lipschitz
+    assert block >= lt
+    assert full >= block * (1 - 1e-5)
+    assert certify_lmi(inp, structure="block").holds
+
+
+def test_lmi_verifier_rejects_perturbed_certificates():
+    base = inputs(lip=0.0)
+    lmax = certify_lmi(base).max_certified_lipschitz
+    inp = replace(base, lipschitz=0.9 * lmax)
+    res = certify_lmi(inp)
+    assert res.holds and verify_certificate(inp, res)
+    # just above the maximum: neither this certificate nor a new one
+    above = replace(base, lipschitz=lmax * (1 + 1e-3))
+    assert not verify_certificate(above, certify_lmi(replace(base, lipschitz=lmax)))
+    assert not certify_lmi(above).holds and not verify_certificate(above, res)
+    # a perturbed P, a P that is not positive definite, the literal certificate's P, negative multipliers
+    rng = np.random.default_rng(3)
+    noise = rng.normal(size=(5, 5))
+    bumped = res.P * (1 + 0.05 * (noise + noise.T))
+    assert not verify_certificate(inp, replace(res, P=bumped))
+    assert not verify_certificate(inp, replace(res, P=-res.P))
+    lit = certify_literal(inp)
+    assert not verify_certificate(inp, replace(res, P=scipy_block(lit.P_e, lit.P_obs)))
+    assert not verify_certificate(inp, replace(res, multipliers=(-res.multipliers[0], res.multipliers[1])))
+    # a smaller claimed bound, a faster claimed decay, a block certificate whose P is not block-diagonal
+    assert not verify_certificate(inp, replace(res, ultimate_bound=0.5 * res.ultimate_bound))
+    assert not verify_certificate(inp, replace(res, alpha=2.0 * res.alpha))
+    assert not verify_certificate(inp, replace(res, structure="block"))
+    assert not verify_certificate(inp, replace(res, holds=False))
+
+
+def scipy_block(p_e, p_o):
+    p = np.zeros((5, 5))
+    p[:2, :2], p[2:, 2:] = p_e, p_o
+    return p
+
+
+def test_lmi_verdict_is_withdrawn_when_the_solver_lies(monkeypatch):
+    """The solver's answer is replaced by a P that is no certificate: nothing verifies, so nothing holds."""
+    gains = (7.0, 5.0, 12.0)  # not used elsewhere, so nothing cached hides the lie
+    for prog in (certificate._lmi_programs("full"),):
+        monkeypatch.setattr(type(prog), "solution", lambda self, t: (-np.eye(5), 1.0, 1.0))
+    certificate._lmi_frontier.cache_clear()
+    try:
+        res = certify_lmi(inputs(*gains, lip=0.0))
+        assert not res.holds and res.max_certified_lipschitz == 0.0
+        assert any("withdrawn" in n for n in res.notes)
+    finally:
+        monkeypatch.undo()
+        certificate._lmi_frontier.cache_clear()
+    assert certify_lmi(inputs(*gains, lip=0.0)).holds
+
+
+@pytest.mark.parametrize("lip_frac", [0.0, 0.5, 0.95])
+def test_lmi_dissipation_inequality_at_random_states(lip_frac):
+    """V̇ ≤ −αV + μC_f² for the worst Δḟ Lemma 1 allows (|Δḟ| at its bound, signed to raise V), at states of
+    wildly different component scales; and V̇ < 0 outside the ultimate bound."""
+    lmax = certify_lmi(inputs(lip=0.0)).max_certified_lipschitz
+    inp = inputs(lip=lip_frac * lmax)
+    res = certify_lmi(inp)
+    assert res.holds
+    a, b = paper_error_system(inp.kp, inp.kd, inp.omega_o)
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(20000, 5)) * np.exp(rng.uniform(-8, 8, size=(20000, 5)))
+    e = d / np.linalg.norm(d, axis=1, keepdims=True) * np.exp(rng.uniform(-6, 6, size=(20000, 1)))
+    pe = e @ res.P
+    v = np.einsum("ij,ij->i", pe, e)
+    vdot = 2 * np.einsum("ij,ij->i", pe, e @ a.T) + 2 * np.abs(pe @ b) * lemma1_bound(inp, e)
+    rhs = -res.alpha * v + res.mu * inp.C_f**2
+    assert np.all(vdot <= rhs + 1e-9 * (np.abs(rhs) + np.abs(vdot)))
+    outside = np.linalg.norm(e, axis=1) > res.ultimate_bound
+    assert outside.sum() > 1000 and np.all(vdot[outside] < 0)
+
+
+@pytest.mark.parametrize("lip_frac", [0.0, 0.5, 0.9])
+def test_lmi_bound_holds_on_simulated_worst_case_trajectories(lip_frac):
+    """The linear error system driven by the Δḟ that raises V fastest within Lemma 1, from rest and from large
+    errors: V(t) ≤ V₀e^{−αt} + (μC_f²/α)(1 − e^{−αt}), so ‖E‖ ends below the eventual bound (and, from rest,
+    never leaves it)."""
+    lmax = certify_lmi(inputs(lip=0.0)).max_certified_lipschitz
+    inp = inputs(lip=lip_frac * lmax)
+    res = certify_lmi(inp)
+    rng = np.random.default_rng(5)
+    e0 = np.zeros((6, 5))
+    e0[1:] = rng.normal(size=(5, 5)) * [0.3, 1.0, 0.03, 0.5, 5.0] * 20
+    t_s, e = worst_case_run(inp, res.P, e0)
+    v0 = np.einsum("ij,jk,ik->i", e0, res.P, e0)
+    v = np.einsum("tij,jk,tik->ti", e, res.P, e)
+    decay = np.exp(-res.alpha * t_s)[:, None]
+    cap = res.mu * inp.C_f**2 / res.alpha
+    assert np.all(v <= (v0 * decay + cap * (1 - decay)) * (1 + 1e-3))
+    norms = np.linalg.norm(e, axis=2)
+    assert norms[:, 0].max() <= res.ultimate_bound  # from rest: inside the sublevel set throughout
+    assert norms[-1].max() <= res.ultimate_bound
+    # the bound is met, not vacuous: from rest the worst case climbs to a sizeable share of it
+    assert norms[:, 0].max() > 0.1 * res.ultimate_bound
+
+
+def test_best_certificate_is_the_tightest_verified_one():
+    kp, kd, w = 10.0, 6.0, 15.0
+    best = max_certified_lipschitz_best(kp, kd, w)
+    base = inputs(kp, kd, w, lip=0.0)
+    others = {m: fast(m)(base).max_certified_lipschitz for m in ("literal", "tight", "lmi")}
+    assert best == max(others.values()) == others["lmi"]
+    assert best >= certify_lmi(base, structure="block").max_certified_lipschitz
+    inside, outside = replace(base, lipschitz=0.99 * best), replace(base, lipschitz=1.01 * best)
+    r = best_certificate(inside)
+    assert r.method == "lmi" and r.holds and verify_certificate(inside, r)
+    assert not best_certificate(outside).holds
+    assert best_certificate(inside) is r  # cached per inputs
+    # the flown gains: the LMI certifies what tight does not
+    between = replace(base, lipschitz=0.5 * (others["tight"] + best))
+    assert not certify_tight(between).holds and best_certificate(between).holds
+
+
 # ------------------------------------------------------------------------------------- JSON and CLI
 
 REQUIRED = {"holds", "alpha_e", "alpha_o", "ultimate_bound", "max_certified_lipschitz"}
 
 
 def test_json_dict_has_required_keys_and_is_strict_json():
-    for res in (certify_literal(inputs(lip=0.01)), certify_literal(inputs(lip=0.5)), certify_tight(inputs(lip=0.5))):
+    for res in (certify_literal(inputs(lip=0.01)), certify_literal(inputs(lip=0.5)), certify_tight(inputs(lip=0.5)),
+                certify_lmi(inputs(lip=0.5)), certify_lmi(inputs(lip=50.0))):
         d = res.to_json_dict()
         assert REQUIRED <= d.keys()
         assert isinstance(d["holds"], bool)
@@ -246,7 +396,8 @@ def _parse(argv):
 
 @pytest.mark.parametrize(
     "lip,method,expected",
-    [(0.01, "literal", 0), (0.05, "literal", 1), (0.05, "tight", 0), (0.05, "both", 0), (5.0, "both", 1)],
+    [(0.01, "literal", 0), (0.05, "literal", 1), (0.05, "tight", 0), (0.05, "both", 0), (5.0, "both", 1),
+     (1.5, "both", 1), (1.5, "lmi", 0), (1.5, "all", 0), (5.0, "lmi", 1), (5.0, "all", 1)],
 )
 def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     certify, args = _parse(["--kp", "10", "--kd", "6", "--omega-o", "20", "--lipschitz", str(lip),
@@ -256,9 +407,11 @@ def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     assert rc == expected
     assert REQUIRED <= out.keys()
     assert out["holds"] == (rc == 0)
-    if method == "both":
+    if method in ("both", "all"):
         assert out["literal"]["method"] == "literal" and out["tight"]["method"] == "tight"
-        assert out["holds"] == out["tight"]["holds"]
+        assert out["holds"] == out["tight" if method == "both" else "lmi"]["holds"]
+    if method == "all":
+        assert out["method"] == "lmi" and out["lmi"]["structure"] == "full"
 
 
 def test_cli_text_report(capsys):
@@ -266,6 +419,7 @@ def test_cli_text_report(capsys):
     assert certify.run(args) == 0
     out = capsys.readouterr().out
     assert "[literal] FAILS" in out and "[tight] HOLDS" in out and "max certified L_N" in out
+    assert "[lmi] HOLDS" in out and "verdict (lmi): HOLDS" in out and "re-verified in numpy" in out
 
 
 def test_cli_as_subprocess():

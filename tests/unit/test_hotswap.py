@@ -31,7 +31,7 @@ def candidate(seed=1, vehicle="uav1", scale=1.0, **meta) -> LipschitzMLP:
     """The shipped base network perturbed, within its bound (or ``scale`` times it, uncertified)."""
     base = load_network(BASE)
     rng = np.random.default_rng(seed)
-    ws = tuple(w + rng.normal(0, 0.02, w.shape) for w in base.weights)
+    ws = tuple(w * scale ** (1 / base.n_layers) + rng.normal(0, 0.02, w.shape) for w in base.weights)
     net = LipschitzMLP(ws, base.biases, base.input_mean, base.input_std, base.output_mean, base.output_std,
                        1e9, dict(base.metadata), base.bound_units).scaled_to_bound(scale * base.lipschitz_bound)
     return with_meta(net, id=f"cand-{seed}", vehicle=vehicle, val_loss=0.05, **meta)
@@ -79,6 +79,14 @@ def _with_header(data: bytes, **meta: str) -> bytes:
     return struct.pack("<Q", len(raw)) + raw + data[8 + hlen:]
 
 
+def _other_size_set() -> str:
+    """A feature set whose size is not the shipped network's."""
+    from neso.features import FEATURE_SETS
+
+    n = load_network(BASE).n_inputs
+    return next(key for key, fs in FEATURE_SETS.items() if fs.size != n)
+
+
 def _nan_weights(data: bytes) -> bytes:
     (hlen,) = struct.unpack("<Q", data[:8])
     header = json.loads(data[8:8 + hlen])
@@ -92,7 +100,7 @@ def _nan_weights(data: bytes) -> bytes:
     (lambda: network_to_bytes(with_meta(random_network(3, sizes=(5, 16, 16, 1), bound=1.0), vehicle="uav1",
                                         val_loss=0.1)), "wrong layer shapes"),
     (lambda: _with_header(network_to_bytes(candidate()), feature_set="telepathy@1"), "unknown feature set"),
-    (lambda: _with_header(network_to_bytes(candidate()), feature_set="state@1"), "has 4 inputs"),
+    (lambda: _with_header(network_to_bytes(candidate()), feature_set=_other_size_set()), "inputs refused"),
     (lambda: network_to_bytes(candidate(vehicle="uav2")), "vehicle 'uav2'"),
     (lambda: network_to_bytes(with_meta(candidate(), val_loss="")), "no validation loss"),
 ])

@@ -9,7 +9,7 @@ import pytest
 
 from neso.hotswap import gate
 from neso.netfile import load_network
-from neso.certificate import largest_certified_lipschitz
+from neso.certificate import max_certified_lipschitz_best
 from neso.learning import RECIPES
 from services import registry
 from services.trainer import Job, TrainerConfig, parse_job, train_job
@@ -43,7 +43,7 @@ def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_
     assert net.feature_set is base.feature_set and net.layer_sizes == base.layer_sizes
     assert net.metadata["label"] == recipe.tdr_label == "applied" and net.metadata["recipe"] == recipe.name
     assert not np.array_equal(net.input_std, base.input_std), "z-scores refitted on the new data (recipe 'fit')"
-    l_max = largest_certified_lipschitz(10.0, 6.0, 15.0)
+    l_max = max_certified_lipschitz_best(10.0, 6.0, 15.0)
     assert net.bound_units == "physical" and net.lipschitz_bound == pytest.approx(recipe.certified_fraction * l_max)
     assert net.certified_lipschitz_physical() <= net.lipschitz_bound * (1 + 1e-9)
     assert net.metadata["parent"] == "base" and net.metadata["vehicle"] == "uav1"
