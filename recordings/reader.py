@@ -54,8 +54,8 @@ class Channel:
                     v = bool(v)
                 elif spec.kind == "number":
                     v = float(v)
-                elif spec.kind == "vector":
-                    v = [float(x) for x in v]
+                elif spec.kind == "vector":  # the schema's vectors are finite: NaN is only the padding
+                    v = [float(x) for x in v if np.isfinite(x)]
                 values[spec.name] = v
             out.append(cls.validate(**values))
         return out
@@ -198,11 +198,20 @@ def _component(batches: list, name: str, kind: str):
         values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat])[order]
         return rowids[order], (values.astype(bool) if kind == "flag" else values)
     if kind == "vector":
-        values = np.concatenate([f.to_numpy(zero_copy_only=False) for f in flat]).astype(float)
-        return rowids[order], values.reshape(len(order), -1)[order]
+        return rowids[order], _vector_rows([r for b in parts for r in b.column(name).to_pylist()])[order]
     values = [v for f in flat for v in f.to_pylist()]
     values = [values[i] for i in order]
     return rowids[order], ([json.loads(v) for v in values] if kind == "json" else values)
+
+
+def _vector_rows(rows: list) -> np.ndarray:
+    """Rows of a vector field, shape (n, longest row); a shorter row (an estimate's z while a network with
+    fewer inputs flew) is padded with NaN."""
+    width = max((len(r) for r in rows), default=0)
+    out = np.full((len(rows), width), np.nan)
+    for i, r in enumerate(rows):
+        out[i, :len(r)] = r
+    return out
 
 
 def rerun_cli() -> str:

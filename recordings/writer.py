@@ -65,9 +65,9 @@ def _field_column(name: str, kind: str, values: list):
     import pyarrow as pa
     import rerun as rr
 
-    if kind == "vector":
-        arr = np.array(values, dtype=float)
-        return rr.ComponentColumn(name, _Arrow(pa.array(arr.reshape(-1))), lengths=[arr.shape[1]] * len(values))
+    if kind == "vector":  # rows may differ in length (an estimate's z when the network's inputs change)
+        rows = [np.asarray(v, dtype=float).reshape(-1) for v in values]
+        return rr.ComponentColumn(name, _Arrow(pa.array(np.concatenate(rows))), lengths=[len(r) for r in rows])
     if kind == "number":
         data = pa.array(np.array(values, dtype=float))
     elif kind == "integer":

@@ -104,6 +104,19 @@ def test_a_flight_reads_back_bit_exact_in_publication_order(tmp_path):
     assert est.columns["z"].shape == (300, 5) and est.columns["z"].dtype == np.float64
 
 
+def test_an_estimate_whose_z_changes_length_mid_flight_reads_back_exactly(tmp_path):
+    """A network with other inputs promoted mid-flight changes the length of z; the recorder once failed
+    on it ("inhomogeneous shape") and stopped recording."""
+    msgs = flight_messages(120)
+    for i, (channel, msg) in enumerate(msgs):
+        if channel == "estimate" and msg.seq % 3 == 1:
+            msgs[i] = (channel, dataclasses.replace(msg, z=msg.z[:3]))
+    write(tmp_path / "f.rrd", msgs, flush_every=41)
+    est = read_recording(tmp_path / "f.rrd").channel("estimate")
+    assert est.messages() == [m for c, m in msgs if c == "estimate"]
+    assert est.columns["z"].shape == (120, 5) and np.isnan(est.columns["z"][1, 3:]).all()
+
+
 def test_a_file_cut_short_is_read_up_to_its_last_flush(tmp_path):
     msgs = flight_messages(200)
     path = tmp_path / "cut.rrd"
