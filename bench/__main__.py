@@ -30,7 +30,7 @@ def bench_tick() -> tuple[float, float]:
     from neso.control import PositionController
     from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
     from neso.types import Reference, StateMeasurement
-    from tests.unit.helpers import random_network
+    from tests.helpers import random_network
 
     net = random_network(0, bound=1.0)
     est = NeuralESO(NeuralEsoConfig(), net)

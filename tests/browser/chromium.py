@@ -1,7 +1,9 @@
-"""Debian's Chromium driven by Playwright, as the browser tests and the dashboard bench use it."""
+"""Debian's Chromium driven by Playwright, as the browser tests and the dashboard bench use it, and the
+page helpers the tests share (tabs, dropdowns, waiting for text)."""
 from __future__ import annotations
 
 import os
+import re
 import threading
 import time
 
@@ -95,3 +97,27 @@ def open_dashboard(browser, url: str, timeout_s: float = 40.0):
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.3)
+
+
+def text(page) -> str:
+    """Everything the page says (its body's text)."""
+    return page.evaluate("document.body.textContent")
+
+
+def tab(page, name: str) -> None:
+    page.get_by_role("tab", name=name).click()
+
+
+def choose(page, label: str, option: str) -> None:
+    page.get_by_label(label, exact=True).click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        t = text(page)
+        if re.search(pattern, t):
+            return t
+        time.sleep(0.05)
+    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")

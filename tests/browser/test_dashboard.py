@@ -24,17 +24,13 @@ from neso.netfile import save_network
 from runtime.client import command, get_params
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
-from tests.browser.chromium import KeptReniced, launch, open_dashboard
-from tests.unit.test_hotswap import candidate
+from tests.browser.chromium import KeptReniced, choose, launch, open_dashboard, tab, text, wait_text
 from tests.busutil import REPO, children_of, free_port, neso, peer, session, stop
+from tests.helpers import candidate
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
 KEYS = Keys("uav1")
 FIGURES: dict[str, object] = {}
-
-
-def text(page) -> str:
-    return page.evaluate("document.body.textContent")
 
 
 class Flight:
@@ -95,25 +91,6 @@ def flight():
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         (ARTIFACTS / "dashboard-figures.json").write_text(json.dumps(FIGURES, indent=2))
         (ARTIFACTS / "dashboard-neso-up.log").write_text(out + "".join(f.output))
-
-
-def tab(page, name: str) -> None:
-    page.get_by_role("tab", name=name).click()
-
-
-def choose(page, label: str, option: str) -> None:
-    page.get_by_label(label, exact=True).click()
-    page.get_by_role("option", name=option, exact=True).click()
-
-
-def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        t = text(page)
-        if re.search(pattern, t):
-            return t
-        time.sleep(0.05)
-    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")
 
 
 def test_page_loads_and_shows_the_flight(flight):

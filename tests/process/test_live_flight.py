@@ -16,21 +16,13 @@ import msgpack
 import numpy as np
 import pytest
 
-from neso.rotations import world_from_body_zyx
 from runtime.client import get_params, set_params
 from runtime.probe import Probe
 from runtime.schema import TOPICS, HealthMsg, Keys, ParamStateMsg, SchemaError
 from tests.busutil import children_of, free_port, neso, peer, role_pid, session, stop
+from tests.helpers import PERIOD_S, max_force_step_n
 
-PERIOD_S = 0.02
 KEYS = Keys("uav1")
-
-
-def max_force_step_n(setpoints) -> float:
-    """Largest change of one component of the commanded force F = T·R e_z between consecutive setpoints
-    (the controller limits each component's increment to 40 N/s · period)."""
-    forces = [m.thrust_n * world_from_body_zyx(m.roll_rad, m.pitch_rad, m.yaw_rad)[:, 2] for m in setpoints]
-    return float(np.max(np.abs(np.diff(forces, axis=0))))
 
 
 class Flight:

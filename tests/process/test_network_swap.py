@@ -18,9 +18,8 @@ from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys
 from tests.busutil import free_port, neso, peer, session
-from tests.process.test_live_flight import PERIOD_S, max_force_step_n
-from tests.unit.helpers import random_network
-from tests.unit.test_hotswap import _nan_weights, _with_stated_bound, candidate, with_meta
+from tests.helpers import (PERIOD_S, candidate, flight_messages, max_force_step_n, nan_weights, random_network,
+                           with_meta, with_stated_bound, write_recording)
 
 KEYS = Keys("uav1")
 
@@ -72,10 +71,10 @@ def _files(tmp):
                         over.output_mean, over.output_std, 1e9, over.metadata)
     bad = {
         "truncated": (good[: len(good) // 2], "truncated"),
-        "nan": (_nan_weights(good), "non-finite"),
+        "nan": (nan_weights(good), "non-finite"),
         "shapes": (network_to_bytes(with_meta(random_network(3, sizes=(5, 16, 16, 1), bound=1.0), vehicle="uav1",
                                               val_loss=0.1)), "wrong layer shapes"),
-        "over_bound": (_with_stated_bound(network_to_bytes(over), 1.0), "certificate fails"),
+        "over_bound": (with_stated_bound(network_to_bytes(over), 1.0), "certificate fails"),
         "other_vehicle": (network_to_bytes(candidate(vehicle="uav2")), "for vehicle 'uav2'"),
     }
     paths = {}
@@ -133,10 +132,8 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
 
 
 def test_neso_train_has_the_trainer_train_on_a_recording_and_offer_the_result(flight, tmp_path):
-    from tests.unit.test_recordings import flight_messages, write
-
     rrd = tmp_path / "eso-flight.rrd"
-    write(rrd, flight_messages(300, pathway="eso"))
+    write_recording(rrd, flight_messages(300, pathway="eso"))
     proc = neso("train", str(rrd), "--label", "eso", "--epochs", "3", "--connect", flight.endpoint)
     out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, out

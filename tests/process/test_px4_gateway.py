@@ -250,9 +250,7 @@ def test_the_vehicles_telemetry_is_on_the_dashboard(flight):
     MAVSDK → gateway → Zenoh → dashboard, and matches the newest telemetry on the bus."""
     from playwright.sync_api import sync_playwright
 
-    from tests.browser.chromium import launch
-    from tests.browser.chromium import open_dashboard
-    from tests.browser.test_dashboard import tab, wait_text
+    from tests.browser.chromium import launch, open_dashboard, tab, wait_text
 
     with sync_playwright() as pw:
         browser = launch(pw)

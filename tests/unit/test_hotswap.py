@@ -2,9 +2,7 @@
 from __future__ import annotations
 
 import copy
-import json
 import math
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -16,24 +14,9 @@ from neso.netfile import load_network, network_to_bytes, save_network
 from neso.network import LipschitzMLP
 from runtime.schema import StateMsg
 from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
-from tests.unit.helpers import measurement, random_network
+from tests.helpers import (BASE, REPO, candidate, measurement, nan_weights, random_network, with_meta,
+                           with_stated_bound)
 
-REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base-L1.safetensors")
-
-
-def with_meta(net: LipschitzMLP, **meta) -> LipschitzMLP:
-    return LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std, net.output_mean, net.output_std,
-                        net.lipschitz_bound, {**net.metadata, **{k: str(v) for k, v in meta.items()}})
-
-
-def candidate(seed=1, vehicle="uav1", **meta) -> LipschitzMLP:
-    base = load_network(BASE)
-    rng = np.random.default_rng(seed)
-    ws = tuple(w + rng.normal(0, 0.02, w.shape) for w in base.weights)
-    net = LipschitzMLP(ws, base.biases, base.input_mean, base.input_std, base.output_mean, base.output_std,
-                       1e9).scaled_to_bound(base.lipschitz_bound)
-    return with_meta(net, id=f"cand-{seed}", vehicle=vehicle, val_loss=0.05, **meta)
 
 
 # -- the swap ---------------------------------------------------------------------------------
@@ -66,26 +49,9 @@ def test_a_good_candidate_passes_with_its_findings():
     assert v.findings["layers"] == "5→20→25→10→1" and float(v.findings["val_loss"]) == 0.05
 
 
-def _with_stated_bound(data: bytes, bound: float) -> bytes:
-    """The same tensors under a header that states another normalised L_N."""
-    (hlen,) = struct.unpack("<Q", data[:8])
-    header = json.loads(data[8:8 + hlen])
-    header["__metadata__"]["lipschitz_bound_normalised"] = repr(bound)
-    raw = json.dumps(header).encode()
-    raw += b" " * (-len(raw) % 8)
-    return struct.pack("<Q", len(raw)) + raw + data[8 + hlen:]
-
-
-def _nan_weights(data: bytes) -> bytes:
-    (hlen,) = struct.unpack("<Q", data[:8])
-    header = json.loads(data[8:8 + hlen])
-    begin = header["layers.1.weight"]["data_offsets"][0] + 8 + hlen
-    return data[:begin] + struct.pack("<d", float("nan")) + data[begin + 8:]
-
-
 @pytest.mark.parametrize("make, reason", [
     (lambda: network_to_bytes(candidate())[:-100], "truncated"),
-    (lambda: _nan_weights(network_to_bytes(candidate())), "non-finite"),
+    (lambda: nan_weights(network_to_bytes(candidate())), "non-finite"),
     (lambda: network_to_bytes(with_meta(random_network(3, sizes=(5, 16, 16, 1), bound=1.0), vehicle="uav1",
                                         val_loss=0.1)), "wrong layer shapes"),
     (lambda: network_to_bytes(candidate(vehicle="uav2")), "vehicle 'uav2'"),
@@ -100,7 +66,7 @@ def test_a_certificate_over_its_bound_is_refused():
     net = candidate()
     over = LipschitzMLP(tuple(w * 1.1 for w in net.weights), net.biases, net.input_mean, net.input_std,
                         net.output_mean, net.output_std, 1e9, net.metadata)
-    data = _with_stated_bound(network_to_bytes(over), 1.0)
+    data = with_stated_bound(network_to_bytes(over), 1.0)
     v = gate(data, active=load_network(BASE), vehicle="uav1")
     assert not v.passed and "certificate" in v.reason and "exceeds" in v.reason, v.reason
 

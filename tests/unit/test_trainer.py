@@ -10,17 +10,15 @@ from neso.hotswap import gate
 from neso.netfile import load_network
 from services import registry
 from services.trainer import Job, TrainerConfig, parse_job, train_job
-from tests.unit.test_recordings import flight_messages, write
+from tests.helpers import BASE, flight_messages, write_recording
 
-REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base-L1.safetensors")
 ACTIVE = {"id": "base-L1.0", "path": BASE, "lipschitz_norm": 1.0}
 
 
 @pytest.fixture
 def rrd(tmp_path):
     path = tmp_path / "flight.rrd"
-    write(path, flight_messages(300, pathway="neural_eso"))
+    write_recording(path, flight_messages(300, pathway="neural_eso"))
     return str(path)
 
 
@@ -50,7 +48,7 @@ def test_a_tdr_job_trains_from_the_active_network_stores_certifies_and_offers(rr
 
 def test_an_eso_job_trains_from_scratch_at_the_bound_asked(tmp_path):
     path = tmp_path / "eso.rrd"
-    write(path, flight_messages(300, pathway="eso"))
+    write_recording(path, flight_messages(300, pathway="eso"))
     config = TrainerConfig(registry=str(tmp_path / "registry"))
     job = parse_job(1, {"recordings": [str(path)], "label": "eso", "epochs": 2, "lipschitz_bound": 0.5,
                         "offer": False}, config)
