@@ -245,6 +245,7 @@ def test_hover_error_matches_the_direct_path_within_1_cm(flight, tmp_path):
     assert abs(mavlink_err - err) < 0.01
 
 
+@pytest.mark.browser  # also drives Chromium (its tier is still process: it needs this module's flight)
 def test_the_vehicles_telemetry_is_on_the_dashboard(flight):
     """What the simulated PX4 reports (armed, mode, battery) reaches the page through MAVLink →
     MAVSDK → gateway → Zenoh → dashboard, and matches the newest telemetry on the bus."""
