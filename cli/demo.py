@@ -26,8 +26,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from neso.control import ControlConfig
+
 RAMP_S = 3.0  # neso.trajectories.Lemniscate.ramp_s: the cycles start after it
-FORCE_STEP_LIMIT_N = 40.0 * 0.02  # the controller's force-increment limit per 50 Hz period
+FORCE_STEP_LIMIT_N = ControlConfig().force_step_limit_n  # the controller's, at neso up's default 50 Hz
 
 
 def add_parser(subparsers) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neso.control import ControlConfig
 from neso.netfile import load_network
 from neso.network import LipschitzMLP
 from neso.rotations import world_from_body_zyx
@@ -25,6 +26,7 @@ from runtime.schema import (CommandReply, CommandRequest, EstimateMsg, EventMsg,
 REPO = Path(__file__).resolve().parents[1]
 BASE = str(REPO / "networks" / "base-L1.safetensors")  # the network the estimator flies by default
 PERIOD_S = 0.02  # `neso up`'s default control period (50 Hz)
+FORCE_STEP_LIMIT_N = ControlConfig(dt_s=PERIOD_S).force_step_limit_n  # the controller's, per sample at 50 Hz
 
 
 # -- networks ---------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from runtime.client import get_params, set_params
 from runtime.probe import Probe
 from runtime.schema import TOPICS, HealthMsg, Keys, ParamStateMsg, SchemaError
 from tests.busutil import children_of, free_port, neso, peer, role_pid, session, stop
-from tests.helpers import PERIOD_S, max_force_step_n
+from tests.helpers import FORCE_STEP_LIMIT_N, max_force_step_n
 
 KEYS = Keys("uav1")
 
@@ -98,7 +98,7 @@ def test_live_pathway_and_bound_changes_take_effect_within_one_period_bumplessly
         time.sleep(0.5)
         sps = sorted((m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10),
                      key=lambda m: m.seq)
-        assert max_force_step_n(sps) <= 40.0 * PERIOD_S + 1e-6, "no step beyond the increment limit"
+        assert max_force_step_n(sps) <= FORCE_STEP_LIMIT_N + 1e-6, "no step beyond the increment limit"
     state = flight.param_states[-1]
     assert state.service == "estimator" and state.values["lipschitz_bound"] == 0.5 and "base-L0.5" in state.note
     assert flight.probe.get("estimate")[-1].network_id.endswith("@L0.5")

@@ -18,7 +18,7 @@ from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys
 from tests.busutil import free_port, neso, peer, session
-from tests.helpers import (PERIOD_S, candidate, flight_messages, max_force_step_n, nan_weights, random_network,
+from tests.helpers import (FORCE_STEP_LIMIT_N, candidate, flight_messages, max_force_step_n, nan_weights, random_network,
                            with_meta, with_stated_bound, write_recording)
 
 KEYS = Keys("uav1")
@@ -115,7 +115,7 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
     time.sleep(0.5)
     sps = {m.seq: m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10}
     pairs = [[sps[k - 1], sps[k]] for k in sps if k - 1 in sps]  # consecutive samples only (a loaded machine drops some)
-    assert len(pairs) >= 8 and max(max_force_step_n(p) for p in pairs) <= 40.0 * PERIOD_S + 1e-6
+    assert len(pairs) >= 8 and max(max_force_step_n(p) for p in pairs) <= FORCE_STEP_LIMIT_N + 1e-6
     ests = {m.seq: m for m in flight.probe.get("estimate")}
     jump = abs(ests[first.seq].f_hat_mps2[2] - ests[first.seq - 1].f_hat_mps2[2])
     typical = np.median([abs(ests[k].f_hat_mps2[2] - ests[k - 1].f_hat_mps2[2])

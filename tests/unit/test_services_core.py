@@ -145,7 +145,7 @@ def test_controller_gain_change_keeps_the_force_continuous():
     core.apply_gains({"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 40.0, "kd_z": 6.0})
     core.on_state(state(1, z=0.9), 0.02)
     (sp1, _), = core.on_estimate(estimate(1, fz=0.0), 0.02)
-    assert abs(sp1.thrust_n - sp0.thrust_n) <= 40.0 * 0.02 + 1e-9
+    assert abs(sp1.thrust_n - sp0.thrust_n) <= core.config.control.force_step_limit_n + 1e-9
 
 
 def test_mission_commands_take_effect_at_the_next_sample():
