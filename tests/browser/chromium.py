@@ -2,6 +2,7 @@
 page helpers the tests share (tabs, dropdowns, waiting for text)."""
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import threading
@@ -29,11 +30,9 @@ def _descendants(root: int) -> list[int]:
     parent: dict[int, int] = {}
     for d in os.listdir("/proc"):
         if d.isdigit():
-            try:
+            with contextlib.suppress(FileNotFoundError, ProcessLookupError, IndexError):  # exited meanwhile
                 with open(f"/proc/{d}/stat") as f:
                     parent[int(d)] = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (FileNotFoundError, ProcessLookupError, IndexError):
-                pass
     out, frontier = [], [root]
     while frontier:
         p = frontier.pop()
@@ -50,15 +49,13 @@ def renice_browsers(nice: int = BROWSER_NICE) -> int:
     would otherwise take them. Returns how many processes were reniced."""
     n = 0
     for pid in _descendants(os.getpid()):
-        try:
+        with contextlib.suppress(FileNotFoundError, ProcessLookupError, PermissionError):  # exited meanwhile
             with open(f"/proc/{pid}/comm") as f:
                 if "chrom" not in f.read():
                     continue
             for tid in os.listdir(f"/proc/{pid}/task"):  # niceness is per thread on Linux
                 os.setpriority(os.PRIO_PROCESS, int(tid), nice)
             n += 1
-        except (FileNotFoundError, ProcessLookupError, PermissionError):
-            pass
     return n
 
 
