@@ -19,9 +19,13 @@ def _query(session, key: str, payload: bytes, reply_type, timeout_s: float, atte
     deadline = time.monotonic() + timeout_s
     while True:
         for reply in session.get(key, payload=payload, timeout=attempt_s):
-            data = reply.ok.payload.to_bytes() if reply.ok is not None else reply.err.payload.to_bytes()
+            if reply.ok is None:  # the service's refusal (a reply_type), or Zenoh's own "Timeout": ask again
+                try:
+                    return reply_type.from_bytes(reply.err.payload.to_bytes())
+                except SchemaError:
+                    continue
             try:
-                return reply_type.from_bytes(data)
+                return reply_type.from_bytes(reply.ok.payload.to_bytes())
             except SchemaError as exc:
                 raise ServiceUnavailable(f"{key}: unreadable reply ({exc})") from None
         if time.monotonic() >= deadline:
