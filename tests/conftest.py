@@ -24,6 +24,7 @@ def tier_of(path: Path) -> str:
     return parts[0]
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
 def pytest_collection_modifyitems(config, items):
     for item in items:
         tier = tier_of(item.path)
