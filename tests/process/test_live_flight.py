@@ -6,6 +6,7 @@ with the simulator's truth.
 """
 from __future__ import annotations
 
+import math
 import os
 import random
 import signal
@@ -153,11 +154,19 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_change_nothing(
 
     pubs = {t: flight.s.declare_publisher(KEYS.topic(t), congestion_control=zenoh.CongestionControl.BLOCK)
             for t in counts}
-    for i in range(10_000):
-        for topic, payloads in counts.items():
-            pubs[topic].put(payloads[i])
-        if i % 100 == 99:
-            time.sleep(0.02)  # ~5 s in all: flood, but not a denial-of-service test
+    # Ten 1 s windows, quiet and flooded in turn (2000 payloads per key in each flooded one: a flood, not a
+    # denial of service), so a burst of the shared machine's own load is as likely to fall on either kind.
+    windows: dict[str, list[tuple[int, int]]] = {"quiet": [], "flood": []}
+    for w in range(10):
+        kind, first, t0 = ("flood" if w % 2 else "quiet"), flight.latest_seq(), time.monotonic()
+        if kind == "flood":
+            for j, i in enumerate(range(w // 2 * 2000, (w // 2 + 1) * 2000)):
+                for topic, payloads in counts.items():
+                    pubs[topic].put(payloads[i])
+                if j % 100 == 99:
+                    time.sleep(max(0.0, t0 + (j + 1) / 2000 - time.monotonic()))
+        time.sleep(max(0.0, t0 + 1.0 - time.monotonic()))
+        windows[kind].append((first, flight.latest_seq()))
     for pub in pubs.values():
         pub.undeclare()
     expected = {("estimator", "state"), ("controller", "state"), ("estimator", "setpoint"), ("source", "setpoint"),
@@ -172,9 +181,15 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_change_nothing(
     time.sleep(1.5)  # one report more: none counted twice
     assert counted() == {k: 10_000 for k in expected}, "rejected payloads counted per (service, topic)"
     assert {r: flight.pid_of(r) for r in pids} == pids, "no service crashed or restarted"
-    setpoint_seqs = [m.seq for m in flight.probe.get("setpoint") if m.seq >= start]
-    assert max(np.diff(setpoint_seqs)) <= 2 and all(m.estimate_source == "estimator"
-                                                    for m in flight.probe.get("setpoint") if m.seq >= start)
+    # the flight is unaffected: samples without a setpoint made from the estimator's f̂, flooded windows
+    # against the quiet ones between them, within the quiet count's own noise (3 sigma, Poisson)
+    flown = {m.seq for m in flight.probe.get("setpoint") if m.estimate_source == "estimator"}
+    missed = {kind: sum(seq not in flown for first, end in ws for seq in range(first, end))
+              for kind, ws in windows.items()}
+    samples = {kind: sum(end - first for first, end in ws) for kind, ws in windows.items()}
+    print(f"samples without an estimator setpoint: {missed} of {samples}")
+    assert min(samples.values()) > 200, samples
+    assert missed["flood"] <= missed["quiet"] + 3 * math.sqrt(missed["quiet"] + 1), (missed, samples)
     assert flight.tracking_error_m(start) < 0.05
 
 
