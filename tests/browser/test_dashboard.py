@@ -22,10 +22,11 @@ import pytest
 
 from neso.netfile import save_network
 from runtime.client import command, get_params
+from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
 from tests.browser.chromium import KeptReniced, choose, launch, open_dashboard, tab, text, wait_text
-from tests.busutil import REPO, children_of, free_port, neso, peer, session, stop
+from tests.busutil import REPO, children_of, free_port, neso, peer, session
 from tests.helpers import candidate
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
@@ -43,7 +44,8 @@ class Flight:
                          "--dashboard-port", str(self.web_port), "--recordings-dir", f"{self.workdir}/recordings",
                          "--registry", f"{self.workdir}/registry")
         self.output: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
+        self._pump_thread = threading.Thread(target=self._pump, daemon=True)
+        self._pump_thread.start()
         self._session_cm = session(peer(self.endpoint))
         self.s = self._session_cm.__enter__()
         self.probe = Probe(self.s)
@@ -63,10 +65,12 @@ class Flight:
                 return pid
         return None
 
-    def close(self):
+    def close(self) -> None:
+        """Ctrl-C ``neso up`` and wait; its output is in ``self.output`` (the pump is its only reader)."""
         self._session_cm.__exit__(None, None, None)
         try:
-            return stop(self.proc, timeout_s=15)
+            interrupt(self.proc)
+            self._pump_thread.join(5.0)
         finally:
             shutil.rmtree(self.workdir, ignore_errors=True)
 
@@ -88,10 +92,10 @@ def flight():
             finally:
                 browser.close()
     finally:
-        out = f.close()
+        f.close()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         (ARTIFACTS / "dashboard-figures.json").write_text(json.dumps(FIGURES, indent=2))
-        (ARTIFACTS / "dashboard-neso-up.log").write_text(out + "".join(f.output))
+        (ARTIFACTS / "dashboard-neso-up.log").write_text("".join(f.output))
 
 
 def test_page_loads_and_shows_the_flight(flight):

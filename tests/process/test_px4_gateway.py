@@ -21,10 +21,11 @@ import numpy as np
 import pytest
 
 from runtime.client import command
+from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import SetpointMsg
 from services.px4_gateway import GatewayConfig
-from tests.busutil import free_port, neso, peer, role_pid, session, stop
+from tests.busutil import free_port, neso, peer, role_pid, session
 
 TOPICS = ("state", "truth", "estimate", "setpoint", "reference", "telemetry")
 HOLD = (4.0, 3.0)  # PX4 main/sub mode of AUTO.LOITER in DO_SET_MODE param2/param3
@@ -49,7 +50,8 @@ class Flight:
         self.log_path = str(tmp / "vehicle.jsonl")
         self.endpoint, self.proc = _up(*extra, "--mavlink-log", self.log_path, home=str(tmp))
         self.output: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
+        self._pump_thread = threading.Thread(target=self._pump, daemon=True)
+        self._pump_thread.start()
         self._cm = session(peer(self.endpoint))
         self.s = self._cm.__enter__()
         self.probe = Probe(self.s, topics=TOPICS)
@@ -75,10 +77,12 @@ class Flight:
     def truth_z(self) -> float:
         return self.probe.get("truth")[-1].pos_enu_m[2]
 
-    def close(self):
+    def close(self) -> str:
+        """Ctrl-C ``neso up``, wait, and return its output (the pump is the only reader of it)."""
         self._cm.__exit__(None, None, None)
-        out = stop(self.proc, timeout_s=10)
-        return out
+        interrupt(self.proc, timeout_s=10)
+        self._pump_thread.join(5.0)
+        return "".join(self.output)
 
 
 def hover_error_m(flight: Flight, first_hover_seq: int, skip: int = 100, n: int = 150) -> float:
