@@ -1,14 +1,26 @@
 # One-command set-up on a fresh machine: a .venv/ in the checkout, torch first (the pinned
-# CPU build, so nothing else pulls a CUDA torch), then this package with its test extra.
+# CPU build, so nothing else pulls a CUDA torch), then this package with its test extra, and the
+# system parts the tests and the demo need (Debian's chromium for the dashboard's browser tests).
+# Quick when everything is there: the venv has a stamp, chromium is a file make checks.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+CHROMIUM := /usr/bin/chromium
 DEMO_S ?= 0
 
-.PHONY: setup demo demo-tdr test bench experiment clean
+.PHONY: setup demo demo-tdr test test-fast bench experiment clean
 
-setup: $(STAMP)
+setup: $(STAMP) $(CHROMIUM)
+
+# Debian's chromium (Playwright drives it; never a downloaded browser build): as root directly,
+# else through sudo, else one line saying what to run.
+$(CHROMIUM):
+	@if [ "$$(id -u)" = 0 ]; then sudo=""; elif command -v sudo >/dev/null 2>&1; then sudo="sudo"; \
+	else echo "make setup: $(CHROMIUM) is missing; as root run: apt-get install -y --no-install-recommends chromium" >&2; exit 1; fi; \
+	echo "make setup: installing Debian's chromium (apt-get) for the dashboard's browser tests"; \
+	{ $$sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq --no-install-recommends chromium >/dev/null; } \
+	|| { echo "make setup: could not install chromium; run: sudo apt-get install -y --no-install-recommends chromium" >&2; exit 1; }
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -25,8 +37,13 @@ demo: setup
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
+# Every tier (unit, sim, bus, process, browser; tests/README.md); the time per tier at the end.
 test: setup
 	$(PY) -m pytest
+
+# The tiers without real-time processes or a browser: under a minute, for every edit.
+test-fast: setup
+	$(PY) -m pytest -m "unit or sim or bus"
 
 bench: setup
 	$(PY) -m bench

@@ -78,11 +78,11 @@ BOUND_COLUMNS = ("eventual bound on ‖E‖ at the flown gains", "L_N = ½ tight
 
 def bound_rows() -> list[tuple[str, str, str]]:
     """Tight's and the LMI's eventual bounds against the largest ‖E‖ the worst-case error system reaches from rest
-    in 10 s (``Δḟ`` at Lemma 1's bound, signed to raise the LMI's V: :func:`tests.unit.helpers.worst_case_run`)."""
+    in 10 s (``Δḟ`` at Lemma 1's bound, signed to raise the LMI's V: :func:`tests.helpers.worst_case_run`)."""
     from dataclasses import replace
 
     from neso.certificate import CertificateInputs, certify_lmi, certify_tight
-    from tests.unit.helpers import worst_case_run
+    from tests.helpers import worst_case_run
 
     base = CertificateInputs(*FLOWN, lipschitz=0.0)
     cols = []

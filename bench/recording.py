@@ -39,7 +39,7 @@ def latency_rows(flight_s: float, rounds: int, workdir: Path) -> list[tuple[str,
 def writer_cpu_s_per_flight_s(flight_s: float, workdir: Path) -> tuple[float, float]:
     """(CPU s per flight s, MB per flight s as written live) for a synthetic flight."""
     from recordings.writer import FlightWriter
-    from tests.unit.test_recordings import flight_messages
+    from tests.helpers import flight_messages
 
     msgs = flight_messages(round(flight_s * 50))
     per_flush = 25  # 5 topics × 5 samples: 0.1 s at 50 Hz

@@ -33,7 +33,7 @@ from neso.control import ControlConfig
 from neso.trajectories import Lemniscate
 
 RAMP_S = Lemniscate().ramp_s  # the cycles start after it
-FORCE_STEP_LIMIT_N = ControlConfig().force_rate_limit_nps * ControlConfig().dt_s  # force increment per period
+FORCE_STEP_LIMIT_N = ControlConfig().force_step_limit_n  # the controller's, at neso up's default 50 Hz
 
 
 def add_parser(subparsers) -> None:

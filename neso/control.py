@@ -45,6 +45,11 @@ class ControlConfig:
         if not self.force_rate_limit_nps > 0:
             raise ValueError("force_rate_limit_nps must be positive")
 
+    @property
+    def force_step_limit_n(self) -> float:
+        """The largest change of each component of F_d from one sample to the next, N."""
+        return self.force_rate_limit_nps * self.dt_s
+
 
 @dataclass(frozen=True, slots=True)
 class ControlOutput:
@@ -101,7 +106,7 @@ class PositionController:
         self.config = config
         self._kp = np.array(config.kp)
         self._kd = np.array(config.kd)
-        self._max_step_n = config.force_rate_limit_nps * config.dt_s
+        self._max_step_n = config.force_step_limit_n
         self._min_up_n = config.min_thrust_fraction * config.vehicle.hover_thrust_n
         self.force_prev_enu_n = hover_force(config.vehicle)
         self._gravity_enu = np.array([0.0, 0.0, config.vehicle.gravity_mps2])

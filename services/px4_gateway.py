@@ -243,6 +243,7 @@ class Px4Link:
         self.tele = {"armed": False, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
                      "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0}
         self.system = self.action = self.offboard = self.mocap = None
+        self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.actions: queue.Queue = queue.Queue()
 
     # -- life ----------------------------------------------------------------------------
@@ -309,7 +310,8 @@ class Px4Link:
         if att is not None and self.offboard is not None:
             from mavsdk.plugins.offboard import Attitude
 
-            self.offboard.set_attitude(Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm))
+            self.last_attitude = Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm)
+            self.offboard.set_attitude(self.last_attitude)
             self.node.stats.output(time.monotonic() - received_s)
         self._drain_events()
 
@@ -355,9 +357,13 @@ class Px4Link:
             if name == "offboard_start":
                 with self.node.lock:
                     age = self.core.setpoint_age_s(time.monotonic())
-                if age < 0 or age > 0.2:
-                    return False, ("refused: no setpoint streamed yet" if age < 0 else
-                                   f"refused: the last setpoint is {age:.2f} s old (stream setpoints first)")
+                    if age < 0 or age > 0.2 or self.last_attitude is None:
+                        return False, ("refused: no setpoint streamed yet" if age < 0 or self.last_attitude is None
+                                       else f"refused: the last setpoint is {age:.2f} s old (stream setpoints first)")
+                    # MAVSDK drops its setpoint stream at every heartbeat that does not say offboard, and start()
+                    # answers NO_SETPOINT_SET until the next setpoint: a start right after a heartbeat (PX4 sends
+                    # one on each arming or mode change) failed. Hand it the newest setpoint again first.
+                    self.offboard.set_attitude(self.last_attitude)
                 self.offboard.start()
                 with self.node.lock:
                     self.core.clear_failsafe()

@@ -12,7 +12,8 @@ Its own flight modes are deliberately simple stand-ins for PX4's (a PD position 
 truth, with the true hover thrust, through the same attitude/thrust interface the offboard
 setpoints use): **hold** (AUTO.LOITER) keeps the position where it was entered; **take-off**
 (AUTO.TAKEOFF) climbs 0.5 m/s to ``takeoff_height_m`` above the ground, then holds; **land**
-(AUTO.LAND) descends at 0.5 m/s and disarms 1 s after touching down (PX4's auto-disarm);
+(AUTO.LAND) descends at 0.5 m/s; once at rest on the ground it idles, level, without position
+control (PX4's land detector), and disarms 1 s of vehicle time later (PX4's auto-disarm);
 **offboard** applies the newest SET_ATTITUDE_TARGET, and if none has come for
 ``offboard_loss_s`` (PX4's COM_OF_LOSS_T, default 1 s) it switches to hold by itself (the
 last line of defence behind the gateway's own failsafe). Disarmed: motors off.
@@ -93,7 +94,7 @@ class MavlinkVehicle:
         ctrl = ControlConfig(dt_s=dt_s, vehicle=VehicleModel(hover_thrust_norm=config.hover_thrust_norm))
         self._position = PositionController(ctrl)
         self._target: np.ndarray | None = None
-        self._touchdown_s: float | None = None
+        self._touchdown_s: float | None = None  # vehicle time (s) AUTO.LAND came to rest on the ground
         self._home_enu_m: np.ndarray | None = None
         self._last_meas: StateMeasurement | None = None
         self._on_ground = True
@@ -229,16 +230,20 @@ class MavlinkVehicle:
                     self._set_mode(MAIN_AUTO, SUB_LOITER)
                     self._target = target
             elif self.sub_mode == SUB_LAND:
-                target[2] = self._target[2] - self.config.land_speed_mps * self.dt_s
-                vel[2] = -self.config.land_speed_mps
-                self._target = target
-                if on_ground:
-                    self._touchdown_s = self._touchdown_s or now
-                    if now - self._touchdown_s >= self.config.disarm_after_landing_s:
+                if on_ground and self._touchdown_s is None:
+                    self._touchdown_s = meas.t_s
+                if self._touchdown_s is not None:
+                    # Landed stays landed (PX4's land detector): motors idle, level, no position control. Flying
+                    # the position loop on the ground tilts the vehicle up to the tilt limit (a few mm of position
+                    # error over a vertical force at its minimum), and it rocked, hopped and tipped over.
+                    if meas.t_s - self._touchdown_s >= self.config.disarm_after_landing_s:
                         self.armed, self._touchdown_s = False, None
                         self._set_mode(MAIN_AUTO, SUB_READY)  # the next arming starts from "ready", not from "land"
                         self._record({"t": now, "kind": "disarmed", "why": "landed"})
                     return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
+                target[2] = self._target[2] - self.config.land_speed_mps * self.dt_s
+                vel[2] = -self.config.land_speed_mps
+                self._target = target
             out = self._position.step(meas, Reference(pos_enu_m=target, vel_enu_mps=vel, yaw_rad=meas.yaw_rad),
                                       np.zeros(3))
             return out.setpoint

@@ -2,6 +2,7 @@
 (watching a vehicle's streams is :class:`runtime.probe.Probe`)."""
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -79,11 +80,9 @@ def pids_in_group(pgid: int) -> list[int]:
     out = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
-            try:
+            with contextlib.suppress(ProcessLookupError):  # exited since it was listed
                 if os.getpgid(int(pid)) == pgid:
                     out.append(int(pid))
-            except ProcessLookupError:
-                pass
     return out
 
 
@@ -92,12 +91,10 @@ def children_of(pid: int) -> list[int]:
     kids = []
     for d in os.listdir("/proc"):
         if d.isdigit():
-            try:
+            with contextlib.suppress(FileNotFoundError, ProcessLookupError, IndexError):  # exited meanwhile
                 with open(f"/proc/{d}/stat") as f:
                     if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
                         kids.append(int(d))
-            except (FileNotFoundError, ProcessLookupError, IndexError):
-                pass
     return kids
 
 

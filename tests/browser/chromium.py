@@ -1,7 +1,10 @@
-"""Debian's Chromium driven by Playwright, as the browser tests and the dashboard bench use it."""
+"""Debian's Chromium driven by Playwright, as the browser tests and the dashboard bench use it, and the
+page helpers the tests share (tabs, dropdowns, waiting for text)."""
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import threading
 import time
 
@@ -27,11 +30,9 @@ def _descendants(root: int) -> list[int]:
     parent: dict[int, int] = {}
     for d in os.listdir("/proc"):
         if d.isdigit():
-            try:
+            with contextlib.suppress(FileNotFoundError, ProcessLookupError, IndexError):  # exited meanwhile
                 with open(f"/proc/{d}/stat") as f:
                     parent[int(d)] = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (FileNotFoundError, ProcessLookupError, IndexError):
-                pass
     out, frontier = [], [root]
     while frontier:
         p = frontier.pop()
@@ -48,15 +49,13 @@ def renice_browsers(nice: int = BROWSER_NICE) -> int:
     would otherwise take them. Returns how many processes were reniced."""
     n = 0
     for pid in _descendants(os.getpid()):
-        try:
+        with contextlib.suppress(FileNotFoundError, ProcessLookupError, PermissionError):  # exited meanwhile
             with open(f"/proc/{pid}/comm") as f:
                 if "chrom" not in f.read():
                     continue
             for tid in os.listdir(f"/proc/{pid}/task"):  # niceness is per thread on Linux
                 os.setpriority(os.PRIO_PROCESS, int(tid), nice)
             n += 1
-        except (FileNotFoundError, ProcessLookupError, PermissionError):
-            pass
     return n
 
 
@@ -95,3 +94,39 @@ def open_dashboard(browser, url: str, timeout_s: float = 40.0):
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.3)
+
+
+def text(page) -> str:
+    """Everything the page says (its body's text)."""
+    return page.evaluate("document.body.textContent")
+
+
+def tab(page, name: str) -> None:
+    page.get_by_role("tab", name=name).click()
+
+
+def choose(page, label: str, option: str) -> None:
+    page.get_by_label(label, exact=True).click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        t = text(page)
+        if re.search(pattern, t):
+            return t
+        time.sleep(0.05)
+    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")
+
+
+def set_lipschitz(page, value: str, override: bool) -> None:
+    """Type ``value`` as the physical L_N, set the override box to ``override``, press Apply L_N."""
+    box = page.get_by_label(re.compile(r"^L.N \(physical\)$"))
+    box.fill(value)
+    box.press("Tab")
+    checkbox = page.get_by_label(re.compile(r"Override certificate \(L.N\)"))
+    if checkbox.is_checked() != override:
+        checkbox.click()
+    time.sleep(0.3)  # the number reaches the server before the click
+    page.get_by_role("button", name="Apply L_N").click()

@@ -22,19 +22,16 @@ import pytest
 
 from neso.netfile import load_network, save_network
 from runtime.client import command, get_params
+from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
-from tests.browser.chromium import KeptReniced, launch, open_dashboard
-from tests.unit.test_hotswap import candidate
-from tests.busutil import REPO, children_of, free_port, neso, peer, session, stop
+from tests.browser.chromium import KeptReniced, choose, launch, open_dashboard, set_lipschitz, tab, text, wait_text
+from tests.busutil import REPO, children_of, free_port, neso, peer, session
+from tests.helpers import candidate
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
 KEYS = Keys("uav1")
 FIGURES: dict[str, object] = {}
-
-
-def text(page) -> str:
-    return page.evaluate("document.body.textContent")
 
 
 class Flight:
@@ -47,7 +44,8 @@ class Flight:
                          "--dashboard-port", str(self.web_port), "--recordings-dir", f"{self.workdir}/recordings",
                          "--registry", f"{self.workdir}/registry")
         self.output: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
+        self._pump_thread = threading.Thread(target=self._pump, daemon=True)
+        self._pump_thread.start()
         self._session_cm = session(peer(self.endpoint))
         self.s = self._session_cm.__enter__()
         self.probe = Probe(self.s)
@@ -56,20 +54,23 @@ class Flight:
         for line in self.proc.stdout:
             self.output.append(line)
 
-    def dashboard_pid(self) -> int:
+    def dashboard_pid(self) -> int | None:
+        """The pid of the ``neso run dashboard`` under ``neso up``, None while there is none."""
         for pid in children_of(self.proc.pid):
             try:
                 cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            except FileNotFoundError:
+            except FileNotFoundError:  # exited since it was listed
                 continue
             if b"dashboard" in cmdline and b"run" in cmdline:
                 return pid
-        raise AssertionError("no dashboard process under neso up")
+        return None
 
-    def close(self):
+    def close(self) -> None:
+        """Ctrl-C ``neso up`` and wait; its output is in ``self.output`` (the pump is its only reader)."""
         self._session_cm.__exit__(None, None, None)
         try:
-            return stop(self.proc, timeout_s=15)
+            interrupt(self.proc)
+            self._pump_thread.join(5.0)
         finally:
             shutil.rmtree(self.workdir, ignore_errors=True)
 
@@ -91,29 +92,10 @@ def flight():
             finally:
                 browser.close()
     finally:
-        out = f.close()
+        f.close()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         (ARTIFACTS / "dashboard-figures.json").write_text(json.dumps(FIGURES, indent=2))
-        (ARTIFACTS / "dashboard-neso-up.log").write_text(out + "".join(f.output))
-
-
-def tab(page, name: str) -> None:
-    page.get_by_role("tab", name=name).click()
-
-
-def choose(page, label: str, option: str) -> None:
-    page.get_by_label(label, exact=True).click()
-    page.get_by_role("option", name=option, exact=True).click()
-
-
-def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        t = text(page)
-        if re.search(pattern, t):
-            return t
-        time.sleep(0.05)
-    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")
+        (ARTIFACTS / "dashboard-neso-up.log").write_text("".join(f.output))
 
 
 def test_page_loads_and_shows_the_flight(flight):
@@ -199,17 +181,6 @@ def test_nn_while_airborne_asks_for_confirmation(flight):
     wait_text(page, r"refused · pathway nn.*cancelled by the operator")
     choose(page, "Pathway", "neural_eso")
     wait_text(page, r"accepted · pathway neural_eso")
-
-
-def set_lipschitz(page, value: str, override: bool) -> None:
-    box = page.get_by_label(re.compile(r"^L.N \(physical\)$"))
-    box.fill(value)
-    box.press("Tab")
-    checkbox = page.get_by_label(re.compile(r"Override certificate \(L.N\)"))
-    if checkbox.is_checked() != override:
-        checkbox.click()
-    time.sleep(0.3)  # the number reaches the server before the click
-    page.get_by_role("button", name="Apply L_N").click()
 
 
 def estimator_bound(flight) -> float:
@@ -362,6 +333,7 @@ def setpoint_stream(flight, seconds: float) -> tuple[int, float]:
 
 def test_kill_the_dashboard_mid_flight_the_flight_goes_on_and_a_restart_picks_it_up(flight):
     pid = flight.dashboard_pid()
+    assert pid is not None, "no dashboard process under neso up"
     skipped_before, gap_before = setpoint_stream(flight, 3.0)
     killed_at = time.monotonic()
     os.kill(pid, signal.SIGKILL)
@@ -374,13 +346,7 @@ def test_kill_the_dashboard_mid_flight_the_flight_goes_on_and_a_restart_picks_it
     assert skipped_after <= max(10, 3 * skipped_before)  # no worse than the loaded machine already was
     # the supervisor restarts it; a fresh page shows the same flight going on
     deadline = killed_at + 40
-    while True:
-        try:
-            new_pid = flight.dashboard_pid()
-            if new_pid != pid:
-                break
-        except AssertionError:
-            pass
+    while flight.dashboard_pid() in (None, pid):
         assert time.monotonic() < deadline, "dashboard not restarted"
         time.sleep(0.2)
     page = open_dashboard(flight.browser, flight.url)

@@ -16,10 +16,12 @@ import pytest
 
 from runtime.client import get_params
 from runtime.probe import Probe
-from tests.browser.chromium import KeptReniced, launch, open_dashboard
-from tests.browser.test_dashboard import KEYS, choose, set_lipschitz, tab, text, wait_text
+from runtime.schema import Keys
+from tests.browser.chromium import KeptReniced, choose, launch, open_dashboard, set_lipschitz, tab, text, wait_text
 from runtime.launcher import interrupt
 from tests.busutil import free_port, neso, secure_init, secure_peer, session
+
+KEYS = Keys("uav1")
 
 
 class SecureFlight:

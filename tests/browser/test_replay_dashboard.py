@@ -8,8 +8,7 @@ import time
 from pathlib import Path
 
 from recordings.px4_import import import_px4_log
-from tests.browser.chromium import KeptReniced, launch, open_dashboard
-from tests.browser.test_dashboard import text, wait_text
+from tests.browser.chromium import KeptReniced, launch, open_dashboard, text, wait_text
 from tests.busutil import REPO, free_port, hub, neso, stop
 from tests.ulogfiles import SITL_LOG
 

@@ -14,7 +14,7 @@ from runtime.client import command
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys
 from tests.busutil import free_port, neso, peer, session, stop
-from tests.unit.helpers import velocity_feedback_network
+from tests.helpers import velocity_feedback_network
 
 KEYS = Keys("uav1")
 

@@ -6,6 +6,7 @@ with the simulator's truth.
 """
 from __future__ import annotations
 
+import math
 import os
 import random
 import signal
@@ -16,21 +17,13 @@ import msgpack
 import numpy as np
 import pytest
 
-from neso.rotations import world_from_body_zyx
 from runtime.client import get_params, set_params
 from runtime.probe import Probe
 from runtime.schema import TOPICS, EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError
 from tests.busutil import REPO, children_of, free_port, neso, peer, role_pid, session, stop
+from tests.helpers import FORCE_STEP_LIMIT_N, max_force_step_n
 
-PERIOD_S = 0.02
 KEYS = Keys("uav1")
-
-
-def max_force_step_n(setpoints) -> float:
-    """Largest change of one component of the commanded force F = T·R e_z between consecutive setpoints
-    (the controller limits each component's increment to 40 N/s · period)."""
-    forces = [m.thrust_n * world_from_body_zyx(m.roll_rad, m.pitch_rad, m.yaw_rad)[:, 2] for m in setpoints]
-    return float(np.max(np.abs(np.diff(forces, axis=0))))
 
 
 class Flight:
@@ -114,7 +107,7 @@ def test_live_pathway_and_bound_changes_take_effect_within_one_period_bumplessly
         time.sleep(0.5)
         sps = sorted((m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10),
                      key=lambda m: m.seq)
-        assert max_force_step_n(sps) <= 40.0 * PERIOD_S + 1e-6, "no step beyond the increment limit"
+        assert max_force_step_n(sps) <= FORCE_STEP_LIMIT_N + 1e-6, "no step beyond the increment limit"
     state = flight.param_states[-1]
     assert state.service == "estimator" and state.values["lipschitz_bound"] == half and "base-x0.5" in state.note
     assert flight.probe.get("estimate")[-1].network_id == f"base-x0.5@L{half:.4g}"
@@ -205,23 +198,42 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_change_nothing(
 
     pubs = {t: flight.s.declare_publisher(KEYS.topic(t), congestion_control=zenoh.CongestionControl.BLOCK)
             for t in counts}
-    for i in range(10_000):
-        for topic, payloads in counts.items():
-            pubs[topic].put(payloads[i])
-        if i % 100 == 99:
-            time.sleep(0.02)  # ~5 s in all: flood, but not a denial-of-service test
+    # Ten 1 s windows, quiet and flooded in turn (2000 payloads per key in each flooded one: a flood, not a
+    # denial of service), so a burst of the shared machine's own load is as likely to fall on either kind.
+    windows: dict[str, list[tuple[int, int]]] = {"quiet": [], "flood": []}
+    for w in range(10):
+        kind, first, t0 = ("flood" if w % 2 else "quiet"), flight.latest_seq(), time.monotonic()
+        if kind == "flood":
+            for j, i in enumerate(range(w // 2 * 2000, (w // 2 + 1) * 2000)):
+                for topic, payloads in counts.items():
+                    pubs[topic].put(payloads[i])
+                if j % 100 == 99:
+                    time.sleep(max(0.0, t0 + (j + 1) / 2000 - time.monotonic()))
+        time.sleep(max(0.0, t0 + 1.0 - time.monotonic()))
+        windows[kind].append((first, flight.latest_seq()))
     for pub in pubs.values():
         pub.undeclare()
-    time.sleep(2.5)  # two health periods
     expected = {("estimator", "state"), ("controller", "state"), ("estimator", "setpoint"), ("source", "setpoint"),
                 ("controller", "estimate")}
-    for service, topic in expected:
-        got = flight.health[service].rejected[topic] - before[service].get(topic, 0.0)
-        assert got == 10_000, f"{service} counted {got} rejected {topic} payloads"
+
+    def counted() -> dict:
+        return {(s, t): flight.health[s].rejected[t] - before[s].get(t, 0.0) for s, t in expected}
+
+    deadline = time.monotonic() + 15.0  # health reports come at 1 Hz, later on a loaded machine
+    while min(counted().values()) < 10_000 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.5)  # one report more: none counted twice
+    assert counted() == {k: 10_000 for k in expected}, "rejected payloads counted per (service, topic)"
     assert {r: flight.pid_of(r) for r in pids} == pids, "no service crashed or restarted"
-    setpoint_seqs = [m.seq for m in flight.probe.get("setpoint") if m.seq >= start]
-    assert max(np.diff(setpoint_seqs)) <= 2 and all(m.estimate_source == "estimator"
-                                                    for m in flight.probe.get("setpoint") if m.seq >= start)
+    # the flight is unaffected: samples without a setpoint made from the estimator's f̂, flooded windows
+    # against the quiet ones between them, within the quiet count's own noise (3 sigma, Poisson)
+    flown = {m.seq for m in flight.probe.get("setpoint") if m.estimate_source == "estimator"}
+    missed = {kind: sum(seq not in flown for first, end in ws for seq in range(first, end))
+              for kind, ws in windows.items()}
+    samples = {kind: sum(end - first for first, end in ws) for kind, ws in windows.items()}
+    print(f"samples without an estimator setpoint: {missed} of {samples}")
+    assert min(samples.values()) > 200, samples
+    assert missed["flood"] <= missed["quiet"] + 3 * math.sqrt(missed["quiet"] + 1), (missed, samples)
     assert flight.tracking_error_m(start) < 0.05
 
 

@@ -18,9 +18,8 @@ from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys
 from tests.busutil import free_port, neso, peer, session
-from tests.process.test_live_flight import PERIOD_S, max_force_step_n
-from tests.unit.helpers import random_network
-from tests.unit.test_hotswap import _nan_weights, _with_header, candidate, with_meta
+from tests.helpers import (FORCE_STEP_LIMIT_N, candidate, flight_messages, max_force_step_n, nan_weights, random_network,
+                           with_header, with_meta, write_recording)
 
 KEYS = Keys("uav1")
 
@@ -72,12 +71,12 @@ def _files(tmp):
                         over.output_mean, over.output_std, 1e9, over.metadata, over.bound_units)
     bad = {
         "truncated": (good[: len(good) // 2], "truncated"),
-        "nan": (_nan_weights(good), "non-finite"),
+        "nan": (nan_weights(good), "non-finite"),
         "shapes": (network_to_bytes(with_meta(random_network(3, sizes=(5, 16, 16, 1), bound=1.0), vehicle="uav1",
                                               val_loss=0.1)), "wrong layer shapes"),
-        "over_bound": (_with_header(network_to_bytes(over), lipschitz_bound=repr(candidate().lipschitz_bound)),
+        "over_bound": (with_header(network_to_bytes(over), lipschitz_bound=repr(candidate().lipschitz_bound)),
                        "certificate fails"),
-        "unknown_inputs": (_with_header(good, feature_set="sonar@1"), "unknown feature set"),
+        "unknown_inputs": (with_header(good, feature_set="sonar@1"), "unknown feature set"),
         "other_vehicle": (network_to_bytes(candidate(vehicle="uav2")), "for vehicle 'uav2'"),
     }
     paths = {}
@@ -118,7 +117,7 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
     time.sleep(0.5)
     sps = {m.seq: m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10}
     pairs = [[sps[k - 1], sps[k]] for k in sps if k - 1 in sps]  # consecutive samples only (a loaded machine drops some)
-    assert len(pairs) >= 8 and max(max_force_step_n(p) for p in pairs) <= 40.0 * PERIOD_S + 1e-6
+    assert len(pairs) >= 8 and max(max_force_step_n(p) for p in pairs) <= FORCE_STEP_LIMIT_N + 1e-6
     ests = {m.seq: m for m in flight.probe.get("estimate")}
     jump = abs(ests[first.seq].f_hat_mps2[2] - ests[first.seq - 1].f_hat_mps2[2])
     typical = np.median([abs(ests[k].f_hat_mps2[2] - ests[k - 1].f_hat_mps2[2])
@@ -135,10 +134,8 @@ def test_a_good_candidate_runs_in_shadow_is_promoted_bumplessly_and_rolled_back(
 
 
 def test_neso_train_has_the_trainer_train_on_a_recording_and_offer_the_result(flight, tmp_path):
-    from tests.unit.test_recordings import flight_messages, write
-
     rrd = tmp_path / "eso-flight.rrd"
-    write(rrd, flight_messages(300, pathway="eso"))
+    write_recording(rrd, flight_messages(300, pathway="eso"))
     proc = neso("train", str(rrd), "--base", "--epochs", "3", "--connect", flight.endpoint)
     out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, out

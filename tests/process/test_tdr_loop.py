@@ -15,6 +15,8 @@ import pytest
 from cli.demo import FORCE_STEP_LIMIT_N, fly_tdr_loop
 from tests.busutil import free_port
 
+pytestmark = pytest.mark.slow  # ~100 s: the whole loop in real time
+
 
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory):

@@ -13,7 +13,7 @@ from neso.netfile import load_network
 from neso.trajectories import Landing, Lemniscate
 from sim.runner import fly
 from sim.scenarios import make_scenario
-from tests.unit.test_hotswap import BASE
+from tests.helpers import BASE
 
 DT = 0.02
 

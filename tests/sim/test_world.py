@@ -15,7 +15,7 @@ from sim.ground_effect import (
     make_ground_effect,
 )
 from sim.mocap import NOISELESS_MOCAP, MocapConfig
-from sim.quadrotor import QuadrotorParams, QuadrotorSim, SimConfig, sim_speed_x_real_time
+from sim.quadrotor import QuadrotorParams, QuadrotorSim, SimConfig
 from sim.scenarios import SCENARIOS, make_scenario
 from sim.terrain import FlatGround, SlopeTerrain
 from sim.turbulence import NO_TURBULENCE, DrydenGusts, TurbulenceConfig, gust_sigma_mps
@@ -323,7 +323,3 @@ def test_make_scenario_overrides_and_unknown_names():
 def test_timing_must_be_integer_multiples_of_dt():
     with pytest.raises(ValueError):
         QuadrotorSim(replace(CLEAN, control_period_s=0.021), seed=0)
-
-
-def test_sim_is_at_least_100x_real_time():
-    assert sim_speed_x_real_time(2.0) > 100.0

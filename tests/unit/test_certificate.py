@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.linalg
 
 import neso.certificate as certificate
 from neso.certificate import (
@@ -31,7 +32,7 @@ from neso.certificate import (
     verify_certificate,
 )
 
-from tests.unit.helpers import lemma1_bound, paper_error_system, worst_case_run
+from tests.helpers import lemma1_bound, paper_error_system, worst_case_run
 
 REPO = Path(__file__).resolve().parents[2]
 GAIN_SETS = [(10.0, 6.0, 20.0), (10.0, 6.0, 10.0), (4.0, 4.0, 10.0), (25.0, 10.0, 30.0)]
@@ -69,14 +70,24 @@ def test_lyapunov_equations_are_solved(method):
 # ------------------------------------------------------------------------------------- literal figures
 
 
-def test_literal_max_lipschitz_for_paper_gains_is_about_0p018():
-    # Closed form: λ_e(λ_o − 2 c_pb L) = (‖P_eB_e‖ + c_pb λ_c L)², with ‖P_eB_e‖ = 0.1044, c_pb = 3.822.
+def literal_closed_form(kp: float, kd: float, w: float, lambda_c: float) -> float:
+    """The literal certificate's largest L_N, from scratch: with Q_e = Q_obs = I (λ_e = λ_o = 1) the
+    positive root of 1·(1 − 2 c_pb L) = (‖P_eB_e‖ + c_pb λ_c L)², P from AᵀP + PA = −I."""
+    a_e, b_e = np.array([[0.0, 1.0], [-kp, -kd]]), np.array([[0.0], [-1.0]])
+    a_o, b_o = np.array([[-3 * w, 1.0, 0.0], [-3 * w**2, 0.0, 1.0], [-(w**3), 0.0, 0.0]]), np.array([[0.0], [0.0], [1.0]])
+    p = np.linalg.norm(scipy.linalg.solve_continuous_lyapunov(a_e.T, -np.eye(2)) @ b_e, 2)
+    c = np.linalg.norm(scipy.linalg.solve_continuous_lyapunov(a_o.T, -np.eye(3)) @ b_o, 2)
+    return float(max(np.roots([(c * lambda_c) ** 2, 2 * p * c * lambda_c + 2 * c, p * p - 1.0]).real))
+
+
+def test_literal_max_lipschitz_for_paper_gains_is_about_0p018_and_the_closed_form():
     corrected = certify_literal(inputs(lip=0.0)).max_certified_lipschitz
     printed = certify_literal(inputs(lip=0.0, lambda_c_rule="paper")).max_certified_lipschitz
     assert 0.015 < corrected < 0.020
     assert 0.015 < printed < 0.020
     assert corrected < printed  # the corrected λ_c is larger
-    assert corrected == pytest.approx(0.017695, rel=1e-3)
+    assert corrected == pytest.approx(literal_closed_form(10.0, 6.0, 20.0, math.hypot(10.0, 7.0)), rel=1e-9)
+    assert printed == pytest.approx(literal_closed_form(10.0, 6.0, 20.0, math.hypot(10.0, 6.0)), rel=1e-9)
 
 
 @pytest.mark.parametrize("method", ["literal", "tight", "lmi"])
@@ -431,4 +442,5 @@ def test_cli_as_subprocess():
     assert proc.returncode == 1, proc.stderr
     out = json.loads(proc.stdout)
     assert out["holds"] is False and out["ultimate_bound"] is None
-    assert out["max_certified_lipschitz"] == pytest.approx(0.017695, rel=1e-3)
+    assert out["max_certified_lipschitz"] == pytest.approx(certify_literal(inputs(lip=0.05)).max_certified_lipschitz,
+                                                           rel=1e-9)

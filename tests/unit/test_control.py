@@ -7,7 +7,7 @@ import pytest
 from neso.control import ControlConfig, PositionController, attitude_from_force, nominal_acceleration
 from neso.rotations import euler_zyx_from_world_from_body, world_from_body_zyx
 from neso.types import Reference, VehicleModel
-from tests.unit.helpers import measurement
+from tests.helpers import measurement
 
 
 def test_hover_maps_to_level_attitude_and_thrust_mg():

@@ -5,7 +5,7 @@ import numpy as np
 
 from runtime.schema import StateMsg
 from services.controller import ControllerConfig, ControllerCore
-from tests.unit.test_services_core import estimate
+from tests.helpers import estimate
 
 
 def moving_state(seq, z, vz=0.0):

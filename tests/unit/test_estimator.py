@@ -7,7 +7,7 @@ import pytest
 from neso.eso import EsoConfig
 from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig, NeuralObserver
 from neso.eso import input_matrix, transition_matrix
-from tests.unit.helpers import measurement, random_network
+from tests.helpers import measurement, random_network
 
 DT = 0.02
 

@@ -8,7 +8,7 @@ import pytest
 
 from neso.features import (FEATURE_SETS, AppliedThrust, FeatureBuilder, FeatureSetError, FeatureSignals, ThrustLag,
                            applied_thrust_series, feature_set)
-from tests.unit.helpers import measurement
+from tests.helpers import measurement
 
 
 def _continuous(commands: np.ndarray, lag: ThrustLag, dt: float, fine: int = 2000) -> np.ndarray:

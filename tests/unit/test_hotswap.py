@@ -2,9 +2,7 @@
 from __future__ import annotations
 
 import copy
-import json
 import math
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -16,25 +14,8 @@ from neso.netfile import load_network, network_to_bytes, save_network
 from neso.network import LipschitzMLP
 from runtime.schema import ReferenceMsg, StateMsg
 from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
-from tests.unit.helpers import measurement, random_network
+from tests.helpers import BASE, REPO, candidate, measurement, nan_weights, random_network, with_header, with_meta
 
-REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base.safetensors")  # the network neso up flies (physical bound, certified)
-
-
-def with_meta(net: LipschitzMLP, **meta) -> LipschitzMLP:
-    return LipschitzMLP(net.weights, net.biases, net.input_mean, net.input_std, net.output_mean, net.output_std,
-                        net.lipschitz_bound, {**net.metadata, **{k: str(v) for k, v in meta.items()}}, net.bound_units)
-
-
-def candidate(seed=1, vehicle="uav1", scale=1.0, **meta) -> LipschitzMLP:
-    """The shipped base network perturbed, within its bound (or ``scale`` times it, uncertified)."""
-    base = load_network(BASE)
-    rng = np.random.default_rng(seed)
-    ws = tuple(w * scale ** (1 / base.n_layers) + rng.normal(0, 0.02, w.shape) for w in base.weights)
-    net = LipschitzMLP(ws, base.biases, base.input_mean, base.input_std, base.output_mean, base.output_std,
-                       1e9, dict(base.metadata), base.bound_units).scaled_to_bound(scale * base.lipschitz_bound)
-    return with_meta(net, id=f"cand-{seed}", vehicle=vehicle, val_loss=0.05, **meta)
 
 
 # -- the swap ---------------------------------------------------------------------------------
@@ -69,16 +50,6 @@ def test_a_good_candidate_passes_with_its_findings():
     assert v.findings["feature_set"] == base.feature_set.key
 
 
-def _with_header(data: bytes, **meta: str) -> bytes:
-    """The same tensors under a header whose metadata says otherwise (e.g. another stated L_N)."""
-    (hlen,) = struct.unpack("<Q", data[:8])
-    header = json.loads(data[8:8 + hlen])
-    header["__metadata__"].update(meta)
-    raw = json.dumps(header).encode()
-    raw += b" " * (-len(raw) % 8)
-    return struct.pack("<Q", len(raw)) + raw + data[8 + hlen:]
-
-
 def _other_size_set() -> str:
     """A feature set whose size is not the shipped network's."""
     from neso.features import FEATURE_SETS
@@ -87,20 +58,13 @@ def _other_size_set() -> str:
     return next(key for key, fs in FEATURE_SETS.items() if fs.size != n)
 
 
-def _nan_weights(data: bytes) -> bytes:
-    (hlen,) = struct.unpack("<Q", data[:8])
-    header = json.loads(data[8:8 + hlen])
-    begin = header["layers.1.weight"]["data_offsets"][0] + 8 + hlen
-    return data[:begin] + struct.pack("<d", float("nan")) + data[begin + 8:]
-
-
 @pytest.mark.parametrize("make, reason", [
     (lambda: network_to_bytes(candidate())[:-100], "truncated"),
-    (lambda: _nan_weights(network_to_bytes(candidate())), "non-finite"),
+    (lambda: nan_weights(network_to_bytes(candidate())), "non-finite"),
     (lambda: network_to_bytes(with_meta(random_network(3, sizes=(5, 16, 16, 1), bound=1.0), vehicle="uav1",
                                         val_loss=0.1)), "wrong layer shapes"),
-    (lambda: _with_header(network_to_bytes(candidate()), feature_set="telepathy@1"), "unknown feature set"),
-    (lambda: _with_header(network_to_bytes(candidate()), feature_set=_other_size_set()), "inputs refused"),
+    (lambda: with_header(network_to_bytes(candidate()), feature_set="telepathy@1"), "unknown feature set"),
+    (lambda: with_header(network_to_bytes(candidate()), feature_set=_other_size_set()), "inputs refused"),
     (lambda: network_to_bytes(candidate(vehicle="uav2")), "vehicle 'uav2'"),
     (lambda: network_to_bytes(with_meta(candidate(), val_loss="")), "no validation loss"),
 ])
@@ -113,7 +77,7 @@ def test_a_certificate_over_its_bound_is_refused():
     net = candidate()
     over = LipschitzMLP(tuple(w * 1.1 for w in net.weights), net.biases, net.input_mean, net.input_std,
                         net.output_mean, net.output_std, 1e9, net.metadata, net.bound_units)
-    data = _with_header(network_to_bytes(over), lipschitz_bound=repr(net.lipschitz_bound))
+    data = with_header(network_to_bytes(over), lipschitz_bound=repr(net.lipschitz_bound))
     v = gate(data, active=load_network(BASE), vehicle="uav1")
     assert not v.passed and "certificate" in v.reason and "exceeds" in v.reason, v.reason
 

@@ -17,7 +17,7 @@ from neso.network import LipschitzMLP
 from neso.features import FEATURE_SETS, feature_set
 from neso.network import fold_scalers
 from neso.training import to_torch, train_lipschitz_mlp
-from tests.unit.helpers import random_network
+from tests.helpers import random_network
 
 # Paper-like inputs: 5 features with different scales and offsets (m, m/s, N, rad, rad).
 _SCALES = np.array([0.4, 0.8, 3.0, 0.1, 0.1])

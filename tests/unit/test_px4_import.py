@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,10 +18,10 @@ from recordings.px4_import import import_px4_log
 from recordings.reader import read_recording
 from recordings.replay import WhatIf, what_if
 from recordings.teacher import eso_teacher
+from tests.helpers import EXAMPLE
 from tests.ulogfiles import (CUBE_LOG, SITL_LOG, data_messages, messages, resubscribed, topic_ids, with_appended,
                              without_topics)
 
-EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
 
 
 @pytest.fixture(scope="module")

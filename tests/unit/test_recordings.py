@@ -14,59 +14,9 @@ from recordings.dataset import load_training_set, select
 from recordings.layout import channel_entity, channel_of, entity, fields_of, message_type, parse_channel_entity
 from recordings.reader import RecordingError, read_recording
 from recordings.writer import FlightWriter, segment_path
-from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, ParamStateMsg, ReferenceMsg, SetpointMsg, StateMsg,
-                            TOPICS, TruthMsg)
+from runtime.schema import TOPICS, EventMsg, ParamStateMsg, SetpointMsg, StateMsg
 from services.recorder import FlightTracker, RecorderConfig
-from tests.unit.test_schema import EXAMPLES
-
-DT = 0.02
-
-
-def flight_messages(n: int, *, pathway="eso", on_ground_until=0, thrust_zero_from=None, seq0=0, warm0=0):
-    """A synthetic flight: n samples of every sampled topic plus some per-service messages."""
-    rng = np.random.default_rng(n)
-    out = []
-    for k in range(n):
-        seq, t, stamp = seq0 + k, (seq0 + k) * DT, 100.0 + (seq0 + k) * DT
-        pos, vel = tuple(rng.normal(size=3)), tuple(rng.normal(size=3))
-        out.append(("state", StateMsg(seq=seq, stamp_s=stamp, t_s=t, pos_enu_m=pos, vel_enu_mps=vel, roll_rad=0.01 * k % 1,
-                                      pitch_rad=-0.02, yaw_rad=0.3, source="sim")))
-        out.append(("truth", TruthMsg(seq=seq, stamp_s=stamp, t_s=t, pos_enu_m=pos, vel_enu_mps=vel,
-                                      disturbance_acc_enu_mps2=tuple(rng.normal(size=3)), on_ground=k < on_ground_until,
-                                      crashed=False, scenario="nominal_landing")))
-        z = tuple(rng.normal(size=5))
-        f_n, delta = tuple(rng.normal(size=3)), tuple(rng.normal(size=3))
-        out.append(("estimate", EstimateMsg(seq=seq, stamp_s=stamp + 1e-4, t_s=t, f_hat_mps2=tuple(np.add(f_n, delta)),
-                                            f_n_mps2=f_n, delta_f_hat_mps2=delta, z=z, pathway=pathway,
-                                            network_id="base-L1.0", warm_ticks=warm0 + k + 1)))
-        thrust = 0.0 if thrust_zero_from is not None and k >= thrust_zero_from else 6.5
-        out.append(("setpoint", SetpointMsg(seq=seq, stamp_s=stamp + 2e-4, state_stamp_s=stamp, t_s=t, roll_rad=0.0,
-                                            pitch_rad=0.01, yaw_rad=0.3, thrust_norm=thrust / 20, thrust_n=thrust,
-                                            acc_cmd_enu_mps2=(0.0, 0.1, -0.2), estimate_source="estimator")))
-        out.append(("reference", ReferenceMsg(seq=seq, stamp_s=stamp + 2e-4, t_s=t, pos_enu_m=pos, vel_enu_mps=vel,
-                                              acc_enu_mps2=(0.0, 0.0, 0.0), yaw_rad=0.3, segment="hover")))
-        if k % 50 == 0:
-            out.append(("health/estimator", HealthMsg(stamp_s=stamp, service="estimator", pid=7, uptime_s=t, ticks=k,
-                                                      rate_hz=50.0, latency_p50_ms=0.2, latency_p99_ms=0.5,
-                                                      rejected={"state": 0.0}, staleness_s={"state": 0.01}, status="ok")))
-    out.insert(3, ("params/estimator", ParamStateMsg(stamp_s=100.0, service="estimator", seq=0,
-                                                     values={"pathway": pathway, "lipschitz_bound": 1.0}, note="start")))
-    out.insert(4, ("event/controller", EventMsg(stamp_s=100.0, service="controller", level="info", text="took off")))
-    return out
-
-
-def write(path, messages, *, flush_every=100, close=True, vehicle="uav1"):
-    w = FlightWriter(path, vehicle=vehicle, flight="uav1-test", segment=0, properties={"params": {"estimator": {"pathway": "eso"}}})
-    for i, (channel, msg) in enumerate(messages):
-        w.add(channel, msg)
-        if i % flush_every == flush_every - 1:
-            w.flush()
-    if close:
-        w.close()
-    else:
-        w.flush()
-    return w
-
+from tests.helpers import EXAMPLE, EXAMPLES, PERIOD_S, flight_messages, write_recording
 
 def test_entity_paths_mirror_the_key_expressions_and_every_field_has_a_kind():
     assert channel_of("neso/uav1/state") == ("uav1", "state")
@@ -86,7 +36,7 @@ def test_every_message_type_reads_back_exactly(tmp_path):
     channels = {"param_state": "params/estimator", "event": "event/estimator", "health": "health/estimator"}
     written = [(channels.get(m.TYPE, m.TYPE), m) for m in EXAMPLES if channels.get(m.TYPE, m.TYPE) in TOPICS
                or m.TYPE in channels]
-    write(path, written * 3)
+    write_recording(path, written * 3)
     rec = read_recording(path)
     assert rec.vehicle == "uav1" and rec.properties["flight"]["flight"] == "uav1-test"
     assert rec.properties["params"]["estimator"] == {"pathway": "eso"}
@@ -96,7 +46,7 @@ def test_every_message_type_reads_back_exactly(tmp_path):
 
 def test_a_flight_reads_back_bit_exact_in_publication_order(tmp_path):
     msgs = flight_messages(300)
-    write(tmp_path / "f.rrd", msgs, flush_every=37)
+    write_recording(tmp_path / "f.rrd", msgs, flush_every=37)
     rec = read_recording(tmp_path / "f.rrd")
     for channel in ("state", "truth", "estimate", "setpoint", "reference", "health/estimator", "params/estimator"):
         assert rec.channel(channel).messages() == [m for c, m in msgs if c == channel], channel
@@ -111,7 +61,7 @@ def test_an_estimate_whose_z_changes_length_mid_flight_reads_back_exactly(tmp_pa
     for i, (channel, msg) in enumerate(msgs):
         if channel == "estimate" and msg.seq % 3 == 1:
             msgs[i] = (channel, dataclasses.replace(msg, z=msg.z[:3]))
-    write(tmp_path / "f.rrd", msgs, flush_every=41)
+    write_recording(tmp_path / "f.rrd", msgs, flush_every=41)
     est = read_recording(tmp_path / "f.rrd").channel("estimate")
     assert est.messages() == [m for c, m in msgs if c == "estimate"]
     assert est.columns["z"].shape == (120, 5) and np.isnan(est.columns["z"][1, 3:]).all()
@@ -120,7 +70,7 @@ def test_an_estimate_whose_z_changes_length_mid_flight_reads_back_exactly(tmp_pa
 def test_a_file_cut_short_is_read_up_to_its_last_flush(tmp_path):
     msgs = flight_messages(200)
     path = tmp_path / "cut.rrd"
-    write(path, msgs, flush_every=100, close=False)  # no footer, as after kill -9
+    write_recording(path, msgs, flush_every=100, close=False)  # no footer, as after kill -9
     full = path.read_bytes()
     path.write_bytes(full[: int(len(full) * 0.6)])  # and the tail of the last write torn off
     rec = read_recording(path)
@@ -147,7 +97,7 @@ def test_not_a_recording_is_a_clear_error(tmp_path):
 
 def test_eso_training_set_has_the_network_input_and_x3_label_and_skips_cold_ground_and_other_pathways(tmp_path):
     msgs = flight_messages(200, on_ground_until=40, thrust_zero_from=180)
-    write(tmp_path / "eso.rrd", msgs)
+    write_recording(tmp_path / "eso.rrd", msgs)
     ts = load_training_set(tmp_path / "eso.rrd", "eso", skip_s=0.5)
     est = [m for c, m in msgs if c == "estimate"]
     states = [m for c, m in msgs if c == "state"]
@@ -172,8 +122,8 @@ def test_eso_training_set_has_the_network_input_and_x3_label_and_skips_cold_grou
 
 def test_tdr_training_set_is_f_n_plus_delta_f_hat_over_several_recordings(tmp_path):
     a, b = flight_messages(100, pathway="neural_eso"), flight_messages(80, pathway="neural_eso", seq0=500, warm0=30)
-    write(tmp_path / "a.rrd", a)
-    write(tmp_path / "b.rrd", b)
+    write_recording(tmp_path / "a.rrd", a)
+    write_recording(tmp_path / "b.rrd", b)
     ts = load_training_set([tmp_path / "a.rrd", tmp_path / "b.rrd"], "tdr")
     est = [m for c, m in a if c == "estimate" and m.warm_ticks >= 25] + [m for c, m in b if c == "estimate"]
     assert len(ts) == len(est) == 76 + 80
@@ -185,13 +135,13 @@ def test_tdr_training_set_is_f_n_plus_delta_f_hat_over_several_recordings(tmp_pa
 def test_a_resent_sample_counts_once(tmp_path):
     msgs = flight_messages(60)
     at = [i for i, (c, _) in enumerate(msgs) if c == "estimate"][40]
-    write(tmp_path / "r.rrd", msgs[: at + 1] + [msgs[at]] + msgs[at + 1:])  # answered again (a lockstep re-send)
+    write_recording(tmp_path / "r.rrd", msgs[: at + 1] + [msgs[at]] + msgs[at + 1:])  # answered again (a lockstep re-send)
     sel = select(read_recording(tmp_path / "r.rrd"), "eso", feature_set(DEFAULT_FEATURE_SET), ThrustLag())
     assert len(sel.y_mps2) == 60 - 24
 
 
 def test_recordings_of_two_vehicles_are_refused_together(tmp_path):
-    write(tmp_path / "a.rrd", flight_messages(60))
+    write_recording(tmp_path / "a.rrd", flight_messages(60))
     w = FlightWriter(tmp_path / "b.rrd", vehicle="uav2", flight="uav2-test")
     for c, m in flight_messages(60):
         w.add(c, m)
@@ -211,7 +161,7 @@ def _sp(seq, thrust):
 
 
 def _st(seq):
-    return StateMsg(seq=seq, stamp_s=1.0, t_s=seq * DT, pos_enu_m=(0, 0, 1), vel_enu_mps=(0, 0, 0), roll_rad=0.0,
+    return StateMsg(seq=seq, stamp_s=1.0, t_s=seq * PERIOD_S, pos_enu_m=(0, 0, 1), vel_enu_mps=(0, 0, 0), roll_rad=0.0,
                     pitch_rad=0.0, yaw_rad=0.0, source="sim")
 
 
@@ -248,7 +198,6 @@ def test_operator_stop_in_the_air_waits_for_the_next_arming_and_start_is_manual(
 
 
 # -- the example recording shipped with the project ---------------------------------------------
-EXAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "examples" / "nominal-landing-eso.rrd"
 
 
 def test_the_example_recording_is_small_and_gives_a_first_training_set():

@@ -2,30 +2,21 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from runtime.params import Param, ParamSet
-from runtime.schema import EstimateMsg, StateMsg
+from runtime.schema import StateMsg
 from services.controller import ControllerConfig, ControllerCore
 from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, estimator_params, load_flown_network
 from services.source import MocapConfig, MocapSource, frame_matrix
-
-REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base.safetensors")
+from tests.helpers import BASE, REPO, estimate
 
 
 def state(seq, z=1.0, t=None):
     return StateMsg(seq=seq, stamp_s=1.0, t_s=0.02 * (seq + 1) if t is None else t, pos_enu_m=(0.0, 0.0, z),
                     vel_enu_mps=(0.0, 0.0, 0.0), roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, source="sim")
-
-
-def estimate(seq, fz=0.5, warm=100):
-    return EstimateMsg(seq=seq, stamp_s=1.0, t_s=0.02 * (seq + 1), f_hat_mps2=(0.0, 0.0, fz), f_n_mps2=(0.0, 0.0, fz),
-                       delta_f_hat_mps2=(0.0, 0.0, 0.0), z=(1.0, 0.0, 9.81, 0.0, 0.0), pathway="neural_eso",
-                       network_id="x", warm_ticks=warm)
 
 
 # -- parameters -------------------------------------------------------------------------------
@@ -163,7 +154,7 @@ def test_controller_gain_change_keeps_the_force_continuous():
     core.apply_gains({"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 40.0, "kd_z": 6.0})
     core.on_state(state(1, z=0.9), 0.02)
     (sp1, _), = core.on_estimate(estimate(1, fz=0.0), 0.02)
-    assert abs(sp1.thrust_n - sp0.thrust_n) <= 40.0 * 0.02 + 1e-9
+    assert abs(sp1.thrust_n - sp0.thrust_n) <= core.config.control.force_step_limit_n + 1e-9
 
 
 def test_mission_commands_take_effect_at_the_next_sample():

@@ -13,10 +13,8 @@ from neso.certificate import max_certified_lipschitz_best
 from neso.learning import RECIPES
 from services import registry
 from services.trainer import Job, TrainerConfig, parse_job, train_job
-from tests.unit.test_recordings import EXAMPLE, flight_messages, write
+from tests.helpers import BASE, EXAMPLE, flight_messages, write_recording
 
-REPO = Path(__file__).resolve().parents[2]
-BASE = str(REPO / "networks" / "base.safetensors")
 ACTIVE = {"id": "base", "path": BASE, "certified_phys": load_network(BASE).certified_lipschitz_physical()}
 FLOWN = {"kp": 10.0, "kd": 6.0, "omega_o": 15.0}  # as NetworkMsg.certificate reports the gains flown
 
@@ -24,7 +22,7 @@ FLOWN = {"kp": 10.0, "kd": 6.0, "omega_o": 15.0}  # as NetworkMsg.certificate re
 @pytest.fixture
 def rrd(tmp_path):
     path = tmp_path / "flight.rrd"
-    write(path, flight_messages(300, pathway="neural_eso"))
+    write_recording(path, flight_messages(300, pathway="neural_eso"))
     return str(path)
 
 
@@ -75,7 +73,7 @@ def test_a_candidate_predicted_to_fly_worse_is_stored_but_not_offered(tmp_path):
 
 def test_an_eso_job_trains_from_scratch_at_the_bound_asked(tmp_path):
     path = tmp_path / "eso.rrd"
-    write(path, flight_messages(300, pathway="eso"))
+    write_recording(path, flight_messages(300, pathway="eso"))
     config = TrainerConfig(registry=str(tmp_path / "registry"))
     job = parse_job(1, {"recordings": [str(path)], "mode": "base", "epochs": 2, "lipschitz_bound": 0.5,
                         "offer": False}, config)

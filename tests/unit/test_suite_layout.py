@@ -1,0 +1,29 @@
+"""The test suite's own rules (tests/README.md): every test file in a tier folder, and no test module
+importing another (shared builders live in tests/helpers.py, tests/busutil.py, tests/browser/chromium.py)."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from tests.conftest import TIERS
+
+TESTS = Path(__file__).resolve().parents[1]
+
+
+def test_every_test_file_is_in_a_tier_folder():
+    misplaced = [str(p.relative_to(TESTS)) for p in TESTS.rglob("test_*.py")
+                 if p.relative_to(TESTS).parts[0] not in TIERS or len(p.relative_to(TESTS).parts) != 2]
+    assert misplaced == [], f"put these under tests/<tier>/ with a tier in {TIERS}"
+
+
+def test_no_module_imports_a_test_module():
+    offenders = []
+    for path in TESTS.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""] + [f"{node.module}.{a.name}" for a in node.names]
+            else:
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            offenders += [f"{path.relative_to(TESTS)}: {n}" for n in names
+                          if n.startswith("tests.") and n.rsplit(".", 1)[-1].startswith("test_")]
+    assert offenders == [], "move what they share to tests/helpers.py"
