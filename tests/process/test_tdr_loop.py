@@ -2,8 +2,9 @@
 
 Fly the near-ground lemniscate under Neural-ESO with the base network while the recorder writes the
 flight; stop the recording; the trainer service trains a TDR network from the `.rrd` starting from
-the active network, certifies and stores it and offers it; the estimator's gate puts it in shadow;
-it is promoted in flight; the lemniscate is flown again. ~100 s on two cores.
+the active network, certifies it, flies the recorded flight again with both networks (the prediction),
+stores it and offers it if it is predicted to improve; the estimator's gate puts it in shadow; it is
+promoted in flight; the lemniscate is flown again while the canary watches. ~110 s on two cores.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import os
 import pytest
 
 from cli.demo import FORCE_STEP_LIMIT_N, fly_tdr_loop
+from neso.hotswap import CanaryConfig
 from tests.busutil import free_port
 
 pytestmark = pytest.mark.slow  # ~100 s: the whole loop in real time
@@ -32,10 +34,13 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     sidecars = list((workdir / "registry" / "uav1").glob("*.json"))
     assert len(sidecars) == 1
     info = json.loads(sidecars[0].read_text())
-    assert info["id"] == report.network_id and info["parent"] == "base-L1.0" and info["label"] == "tdr"
+    assert info["id"] == report.network_id and info["parent"] == "base" and info["label"] == "applied"
     assert info["recordings"] == [report.recording] and info["certified_phys"] <= info["lipschitz_phys"] * (1 + 1e-6)
-    assert info["val_loss"] >= 0 and info["certificate"]["max_certified_lipschitz"] > 0
+    assert info["val_loss"] >= 0 and info["certificate"]["holds"] and info["certificate"]["margin"] > 0
+    assert info["predicted"] == report.predicted and report.predicted["seconds"] > 25
     assert report.cycles_before_samples > 1000 and report.cycles_after_samples > 1000, "5 cycles each (1500 samples)"
+    if not report.offered:
+        return  # predicted to fly worse: nothing was swapped (test_the_loop_never_makes_the_flight_worse)
     # the total estimate is continuous: the step at the swap is no larger than the flight's usual steps
     assert report.f_hat_step_at_swap_mps2 <= report.f_hat_step_p99_mps2
     assert report.force_step_at_swap_n <= FORCE_STEP_LIMIT_N + 1e-9
@@ -46,12 +51,16 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     assert report.missed_setpoints <= 0.06 * report.states, report.missed_by_phase
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "not in this simulator: TDR makes the near-ground lemniscate worse here (measured 1.64 -> 2.69, "
-    "1.59 -> 3.66, 1.11 -> 20.0 and 1.06 -> 2.92 cm in four runs; offline `neso experiment paper`: 1.18 -> 1.86 cm). "
-    "The scenario's out-of-distribution disturbance is zero-mean Dryden gusts (correlation 0.1-0.2 s, "
-    "sim/turbulence.py) that no function of the state predicts, and the TDR network learns the closed-loop "
-    "identity T_{k-1} = m(g + a_d - f_hat_{k-1}) instead (README, 'What the simulation shows')."))
-def test_z_rmse_after_the_swap_is_at_least_40_percent_lower(loop):
+def test_the_loop_never_makes_the_flight_worse(loop):
+    """What the operator is promised: a candidate is offered only when the recorded flight flown again says
+    it improves, and once promoted the flight is not worse than the canary tolerates (or it was rolled back).
+    Whether TDR *improves* the lemniscate is not asserted: in this simulator there is nothing state-dependent
+    left to learn there (README, "What the simulation shows"); the figures are printed."""
     report, _ = loop
-    assert report.improvement >= 0.40, f"{report.rmse_before_cm:.2f} -> {report.rmse_after_cm:.2f} cm"
+    change = report.predicted["change"]
+    assert report.offered == (change < 0), (change, report.trainer_summary)
+    if report.offered:
+        tolerated = 1.0 + CanaryConfig().margin
+        worse = report.rmse_after_cm > tolerated * report.rmse_before_cm
+        assert not worse or "rolled back" in report.canary, (report.rmse_before_cm, report.rmse_after_cm,
+                                                             report.canary)
