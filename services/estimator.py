@@ -104,8 +104,11 @@ def estimator_params(config: EstimatorConfig, bound_phys: float) -> tuple[Param,
     )
 
 
+BOUND_MATCH_REL = 5e-4  # an L_N typed as shown (4 significant digits) finds the network trained for it
+
+
 def _same_bound(a: float, b: float) -> bool:
-    return math.isclose(a, b, rel_tol=1e-6)
+    return math.isclose(a, b, rel_tol=BOUND_MATCH_REL)
 
 
 class NetworkChoice:
@@ -143,6 +146,8 @@ class NetworkChoice:
         """(network, what was done) for L_N = ``bound`` physical (call only if :meth:`refusal` is None)."""
         for b, (net, path) in self.trained.items():
             if _same_bound(b, bound):
+                if b > bound:  # trained a hair above what was asked: never fly more than asked
+                    net = net.scaled_to_bound(bound, "physical")
                 return net, f"loaded {path}, trained for L_N={b:.4g} (certified {net.certified_lipschitz_physical():.4g} " \
                             f"physical, {net.certified_lipschitz_normalised():.4g} normalised)"
         net = self.loaded.scaled_to_bound(bound, "physical")

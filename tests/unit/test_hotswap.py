@@ -160,6 +160,19 @@ def test_an_l_n_change_shows_where_the_network_came_from_and_is_fixed_after_a_pr
     assert "fixed" in core.check({"lipschitz_bound": 0.3, "pathway": "neural_eso"})
 
 
+@pytest.mark.parametrize("shown", ["{:.4g}", "{:.5g}"])  # just above, just below
+def test_an_l_n_typed_as_shown_finds_the_network_trained_for_it_and_never_flies_more_than_asked(shown):
+    net, source = load_flown_network(BASE)
+    choice = NetworkChoice(net, source, str(REPO / "networks"))
+    half = load_network(REPO / "networks" / "base-x0.5.safetensors").lipschitz_bound_physical()
+    typed = float(shown.format(half))  # 0.746, 0.74599: as the dashboard and `neso params` print it
+    assert typed != half
+    flown, what = choice.network_for(typed)
+    assert "base-x0.5.safetensors" in what
+    assert flown.certified_lipschitz_physical() <= typed * (1 + 1e-9)
+    assert "scaled" in choice.network_for(half * 0.99)[1]  # 1 % off is another bound: the loaded one scaled
+
+
 # -- the certificate, checked where the change is applied -------------------------------------
 def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overridden():
     from runtime.params import ParamSet
