@@ -27,7 +27,8 @@ import subprocess
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 from runtime.schema import Message, RecordingMsg, SchemaError
@@ -39,6 +40,7 @@ DEFAULT_DIR = "out/recordings"
 class RecorderConfig:
     directory: str = DEFAULT_DIR
     flush_period_s: float = 0.1
+    params_timeout_s: float = 1.0  # per service, all asked at once at a flight's start (answers take ~1 ms)
     preroll_s: float = 1.0
     idle_end_s: float = 1.0
     silence_end_s: float = 2.0
@@ -462,14 +464,15 @@ def run(args, bus) -> int:
     put_status = node.publisher("recording")
     services = [r.name for r in ROLES if r.per_vehicle and r.bus_role != "router" and r.name != "recorder"]
 
+    def read(service: str) -> dict | None:
+        try:
+            return read_params(node.session, node.keys, service, timeout_s=config.params_timeout_s).values
+        except ServiceUnavailable:
+            return None  # not running (no trainer, no gateway): recorded without its parameters
+
     def query_params() -> dict:
-        out = {}
-        for service in services:
-            try:
-                out[service] = read_params(node.session, node.keys, service, timeout_s=0.3).values
-            except ServiceUnavailable:
-                pass
-        return out
+        with ThreadPoolExecutor(len(services)) as pool:  # all at once: an absent service costs one timeout
+            return {s: v for s, v in zip(services, pool.map(read, services)) if v is not None}
 
     recorder = Recorder(config, args.vehicle, publish_status=put_status, query_params=query_params, log=node.log,
                         report=node.event)
