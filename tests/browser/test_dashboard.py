@@ -197,7 +197,7 @@ def test_the_page_opens_on_the_estimators_certificate_holding(flight):
     page = flight.page
     wait_text(page, r"certificate \*?\*?HOLDS")
     tab(page, "Flight")
-    wait_text(page, r"certificate holds: L_N 0\.\d+ \(m/s²\)/unit z physical vs 0\.\d+ certified for kp 10, kd 6")
+    wait_text(page, r"certificate holds: L_N \d+\.\d+ \(m/s²\)/unit z physical vs \d+\.\d+ certified for kp 10, kd 6")
 
 
 def test_lipschitz_bound_certified_is_applied_uncertifiable_refused_unless_overridden(flight):
@@ -267,6 +267,7 @@ def test_px4_recorder_and_network_reports_are_shown_when_present(flight):
     """Telemetry is published from the test (no PX4 gateway on the direct sim path); the recording
     is the real recorder's, and the network panel drives a real candidate through the estimator."""
     page = flight.page
+    flying = flight.probe.get("estimate")[-1].network_id  # the network a roll back returns to
     flight.s.put(KEYS.topic("telemetry"), TelemetryMsg(
         stamp_s=time.monotonic(), connected=True, armed=True, in_air=True, flight_mode="OFFBOARD", roll_rad=0.0,
         pitch_rad=0.0, yaw_rad=0.0, pos_enu_m=(0.0, 0.0, 1.0), vel_enu_mps=(0.0, 0.0, 0.0), battery_v=15.2,
@@ -287,7 +288,7 @@ def test_px4_recorder_and_network_reports_are_shown_when_present(flight):
     wait_text(page, r"Active cand-7")
     page.get_by_role("button", name="Roll back").click()
     wait_text(page, r"accepted · estimator rollback on uav1")
-    wait_text(page, r"Active base ")
+    wait_text(page, rf"Active {re.escape(flying)} ")
 
 
 def test_bus_to_dom_latency(flight):
