@@ -180,7 +180,8 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     parent = ""
     if job.mode == "tdr":
         if not active:
-            raise ValueError("tdr starts from the active network, and no NetworkMsg came from the estimator yet")
+            raise ValueError("tdr retrains the active network, and no estimator has reported one (none on the bus?); "
+                             "mode base trains one from scratch (neso train --base)")
         init = active_network(active)
         parent = str(active.get("id", ""))
         recipe = recipe_of(init.metadata)

@@ -3,6 +3,7 @@ verify`, the catalog with duration and source, refusals (one line, exit 1, nothi
 pairs, what-if, MCAP export, and `neso train FILE.ulg` against a real trainer service on a real bus."""
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -64,16 +65,16 @@ def test_neso_train_takes_a_px4_log_and_reports_the_network(tmp_path, rerun_home
         trainer = neso("run", "trainer", "--connect", endpoint, "--registry", str(tmp_path / "registry"),
                        "--recordings-dir", str(tmp_path / "recordings"))
         try:
-            code, out = run("train", str(SITL_LOG), "--label", "eso", "--epochs", "40", "--no-offer",
+            code, out = run("train", str(SITL_LOG), "--base", "--epochs", "40", "--no-offer",
                             "--import-dir", str(tmp_path / "imports"), "--connect", endpoint, "--timeout", "240",
                             timeout_s=300)
         finally:
             stop(trainer)
     assert code == 0, out
     assert "imported px4-sitl-takeoff-hover.ulg" in out, out
-    done = re.search(r"job \d+ done: (\S+) at (\S+): (\d+) samples from 1 recording\(s\), val_loss ([\d.e+-]+).*"
-                     r"small-gain (holds|does not hold)", out)
+    done = re.search(r"job \d+ done: (\S+) at (\S+): (\d+) eso samples \(state@1\) from 1 recording\(s\), "
+                     r"val_loss ([\d.e+-]+).*certificate (holds|FAILS)", out)
     assert done, out
-    assert 100 < int(done.group(3)) < 200
+    assert 100 < int(done.group(3)) < 200 and os.path.isfile(done.group(2))
     rec = read_recording(tmp_path / "imports" / "px4-sitl-takeoff-hover.rrd")
     assert rec.properties["import"]["file_name"] == "px4-sitl-takeoff-hover.ulg"
