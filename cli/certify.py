@@ -42,6 +42,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Small-gain certificate for given PD gains, observer bandwidth and network Lipschitz "
         "constant. L_N is the PHYSICAL Lipschitz constant ((m/s^2) per unit of mixed-SI z); a normalised "
         "bound converts as L_phys = L_norm * sigma_y / min(sigma_z).",
+        epilog="exit status: 0 the certificate holds, 1 it fails (for scripts: `neso certify ... && fly`), "
+        "2 the input is refused (e.g. an unreadable network file).",
     )
     kp, kd, omega_o, _ = _flight_defaults()
     p.add_argument("--kp", type=float, default=kp, help="proportional gain, 1/s^2 (default: the controller's z, %(default)s)")
@@ -63,7 +65,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="literal: paper as written (Q=I, Young splits); tight: optimised scalings/weights; "
                    "lmi: quadratic V=E'PE by SDP (cvxpy + Clarabel), re-verified in numpy (all: same assumptions); "
                    "both: literal and tight, verdict from tight; all (default): the three, verdict from lmi")
-    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text: the verdict, each method's "
+                   "figures, the inputs (compact)")
+    p.add_argument("--verbose", action="store_true", help="with --json: every method's matrices and terms too")
     p.set_defaults(func=run)
     return p
 
@@ -120,6 +124,30 @@ def _text(res) -> list[str]:
     return lines
 
 
+VERDICT = ("holds", "method", "max_certified_lipschitz", "ultimate_bound")  # the top level of the JSON
+FIGURES = ("holds", "max_certified_lipschitz", "alpha_e", "alpha_o", "ultimate_bound")  # each method's, compact
+
+
+def _json(args, inputs, results: dict, main, network: dict | None) -> dict:
+    """The verdict (its method's holds, largest certified L_N, margin, ultimate bound) at the top level; under
+    ``methods`` each method's figures, or with ``--verbose`` everything it computed (matrices, terms, notes);
+    the inputs; the network when one was given."""
+    full = {name: res.to_json_dict() for name, res in results.items()}
+    out = {k: full[main.method][k] for k in VERDICT}
+    out["margin"] = None if out["max_certified_lipschitz"] is None else out["max_certified_lipschitz"] - inputs.lipschitz
+    out["methods"] = full if args.verbose else {name: {k: d[k] for k in FIGURES} for name, d in full.items()}
+    out["inputs"] = {
+        "kp": inputs.kp, "kd": inputs.kd, "omega_o": inputs.omega_o, "lipschitz": inputs.lipschitz,
+        "L1": inputs.L_1, "Lu": inputs.L_u, "ref_vel_max": inputs.ref_vel_max,
+        "ref_acc_max": inputs.ref_acc_max, "n_axes": inputs.n_axes, "lambda_c_rule": inputs.lambda_c_rule,
+        "method": args.method,
+    }
+    out["units"] = full[main.method]["units"]
+    if network is not None:
+        out["network"] = network
+    return out
+
+
 def run(args) -> int:
     """Compute, print (text or ``--json``) and return 0 if the certificate holds, 1 otherwise."""
     from neso.certificate import certify_lmi, certify_literal, certify_tight
@@ -143,18 +171,7 @@ def run(args) -> int:
     main = results[{"both": "tight", "all": "lmi"}.get(args.method, args.method)]
 
     if args.json:
-        out = main.to_json_dict()
-        if args.method in ("both", "all"):
-            out.update({name: res.to_json_dict() for name, res in results.items()})
-        out["inputs"] = {
-            "kp": inputs.kp, "kd": inputs.kd, "omega_o": inputs.omega_o, "lipschitz": inputs.lipschitz,
-            "L1": inputs.L_1, "Lu": inputs.L_u, "ref_vel_max": inputs.ref_vel_max,
-            "ref_acc_max": inputs.ref_acc_max, "n_axes": inputs.n_axes, "lambda_c_rule": inputs.lambda_c_rule,
-        }
-        out["method_requested"] = args.method
-        if network is not None:
-            out["network"] = network
-        print(json.dumps(out, indent=2))
+        print(json.dumps(_json(args, inputs, results, main, network), indent=2))
     else:
         if network is not None:
             print(f"network {network['path']} ({network['id']}, inputs {network['feature_set']}): exact physical L_N "

@@ -416,13 +416,34 @@ def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     rc = certify.run(args)
     out = json.loads(capsys.readouterr().out)
     assert rc == expected
-    assert REQUIRED <= out.keys()
-    assert out["holds"] == (rc == 0)
+    assert {"holds", "method", "max_certified_lipschitz", "margin", "ultimate_bound", "methods", "inputs"} <= out.keys()
+    assert out["holds"] == (rc == 0) and REQUIRED <= out["methods"][out["method"]].keys()
     if method in ("both", "all"):
-        assert out["literal"]["method"] == "literal" and out["tight"]["method"] == "tight"
-        assert out["holds"] == out["tight" if method == "both" else "lmi"]["holds"]
+        methods = out["methods"]
+        assert set(methods) == ({"literal", "tight"} if method == "both" else {"literal", "tight", "lmi"})
+        assert out["holds"] == methods["tight" if method == "both" else "lmi"]["holds"]
     if method == "all":
-        assert out["method"] == "lmi" and out["lmi"]["structure"] == "full"
+        assert out["method"] == "lmi" and "P" not in out["methods"]["lmi"]  # compact: no matrices
+        assert out["max_certified_lipschitz"] == out["methods"]["lmi"]["max_certified_lipschitz"]
+
+
+def test_cli_json_is_compact_and_verbose_adds_the_matrices(capsys):
+    certify, args = _parse(["--lipschitz", "1.0", "--json"])
+    assert certify.run(args) == 0
+    text = capsys.readouterr().out
+    compact = json.loads(text)
+    assert len(text.splitlines()) < 60 and compact["margin"] == pytest.approx(compact["max_certified_lipschitz"] - 1.0)
+    certify, args = _parse(["--lipschitz", "1.0", "--json", "--verbose"])
+    certify.run(args)
+    verbose = json.loads(capsys.readouterr().out)
+    assert verbose["methods"]["lmi"]["structure"] == "full" and len(verbose["methods"]["lmi"]["P"]) == 5
+    assert {k: v for k, v in verbose.items() if k != "methods"} == {k: v for k, v in compact.items() if k != "methods"}
+
+
+def test_cli_help_says_what_the_exit_status_means(capsys):
+    with pytest.raises(SystemExit):
+        _parse(["--help"])
+    assert "exit status: 0 the certificate holds, 1 it fails" in " ".join(capsys.readouterr().out.split())
 
 
 def test_cli_text_report(capsys):
