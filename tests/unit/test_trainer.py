@@ -93,7 +93,7 @@ def test_jobs_that_cannot_be_done_are_refused_with_the_reason(rrd, tmp_path):
         with pytest.raises(ValueError, match=reason):
             parse_job(1, args, config)
     job = Job(1, (rrd,), "tdr", None, None, 2, True, 0)
-    with pytest.raises(ValueError, match="no NetworkMsg"):
+    with pytest.raises(ValueError, match="no estimator has reported one"):
         train_job(job, config, "uav1", None)
     with pytest.raises(ValueError, match="vehicle 'uav1'"):
         train_job(job, config, "uav2", ACTIVE)
