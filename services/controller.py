@@ -208,7 +208,7 @@ class ControllerCore:
                 self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
         f_hat = self._pending_local if local_f_hat else np.array(self._estimates[p.state.seq].f_hat_mps2)
         ref = self.mission.reference(p.state.t_s)
-        if ref is not None and self.mission.landed(p.meas.pos_enu_m[2]):
+        if ref is not None and self.mission.landed(p.meas.pos_enu_m[2], p.state.t_s):
             ref = None
             self.events.append(("info", "landed: motors idle"))
         if ref is None:
