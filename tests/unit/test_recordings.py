@@ -14,7 +14,7 @@ from recordings.layout import channel_entity, channel_of, entity, fields_of, mes
 from recordings.reader import RecordingError, read_recording
 from recordings.writer import FlightWriter, segment_path
 from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, ParamStateMsg, ReferenceMsg, SetpointMsg, StateMsg,
-                            TOPICS, TruthMsg)
+                            TOPICS, TelemetryMsg, TruthMsg)
 from services.recorder import FlightTracker, RecorderConfig
 from tests.unit.test_schema import EXAMPLES
 
@@ -190,34 +190,80 @@ def _st(seq):
                     pitch_rad=0.0, yaw_rad=0.0, source="sim")
 
 
-def test_flight_starts_at_thrust_ends_after_a_second_without_and_at_a_source_restart():
+def _tel(armed, in_air):
+    return TelemetryMsg(stamp_s=1.0, connected=True, armed=armed, in_air=in_air, flight_mode="offboard", roll_rad=0.0,
+                        pitch_rad=0.0, yaw_rad=0.0, pos_enu_m=(0.0, 0.0, 1.0), vel_enu_mps=(0.0, 0.0, 0.0),
+                        battery_v=15.0, battery_remaining=0.8, hover_thrust_norm=0.5, setpoint_age_s=0.02, failsafe="")
+
+
+def test_flight_starts_after_half_a_second_of_thrust_ends_after_two_without_and_at_a_source_restart():
     tr = FlightTracker(RecorderConfig())
     assert not tr.on_message("setpoint", _sp(0, 5.0), 0.0).start, "no state seen yet"
     tr.on_message("state", _st(0), 0.0)
-    assert tr.on_message("setpoint", _sp(0, 0.0), 0.0).start == ""
-    assert tr.on_message("setpoint", _sp(1, 5.0), 0.02).start.startswith("armed")
-    assert tr.on_message("setpoint", _sp(2, 0.0), 0.04).stop == ""
-    assert tr.on_message("setpoint", _sp(60, 0.0), 1.05).stop.startswith("landed")
-    assert tr.on_message("setpoint", _sp(61, 5.0), 1.1).start
-    tr.on_message("state", _st(70), 1.2)
-    assert "restarted" in tr.on_message("state", _st(0), 1.3).stop
-    tr.on_message("setpoint", _sp(1, 5.0), 1.32)
-    assert tr.tick(1.4).stop == "" and "no state samples" in tr.tick(3.4).stop
+    assert tr.on_message("setpoint", _sp(1, 5.0), 0.3).start == "", "not yet flying for 0.5 s"
+    assert tr.on_message("setpoint", _sp(2, 5.0), 0.51).start.startswith("flying for 0.5 s: thrust commanded")
+    assert tr.on_message("setpoint", _sp(3, 0.0), 0.6).stop == ""
+    assert tr.on_message("setpoint", _sp(4, 5.0), 1.0).stop == "", "a short break is no landing"
+    tr.on_message("setpoint", _sp(5, 0.0), 1.1)
+    tr.on_message("state", _st(50), 2.9)
+    assert tr.tick(3.0).stop == "" and tr.tick(3.1).stop.startswith("landed: not flying for 2 s")
+    assert tr.on_message("setpoint", _sp(61, 5.0), 3.2).start == ""
+    assert tr.on_message("setpoint", _sp(62, 5.0), 3.7).start
+    tr.on_message("state", _st(70), 3.8)
+    assert "restarted" in tr.on_message("state", _st(0), 3.9).stop
+    tr.on_message("setpoint", _sp(1, 5.0), 3.92)
+    assert tr.tick(4.0).stop == "" and "no state samples" in tr.tick(6.0).stop
 
 
-def test_operator_stop_in_the_air_waits_for_the_next_arming_and_start_is_manual():
+def test_telemetry_decides_when_present_and_a_flapping_signal_never_makes_flights():
+    """The issue's PX4 case: the controller commands thrust, the vehicle says disarmed (10 Hz):
+    no flight at all, however long; then a real one, armed and in the air, is one flight."""
+    tr = FlightTracker(RecorderConfig())
+    tr.on_message("state", _st(0), 0.0)
+    decisions = []
+    for k in range(1500):  # 30 s at 50 Hz
+        now = k * 0.02
+        decisions.append(tr.on_message("setpoint", _sp(k, 6.0), now))
+        if k % 5 == 0:
+            decisions.append(tr.on_message("telemetry", _tel(armed=False, in_air=False), now))
+        decisions.append(tr.tick(now))
+    assert not any(d.start or d.stop for d in decisions)
+    # a vehicle whose in-air flag flickers on the ground (armed, 0.2 s in the air, 0.2 s not): still nothing
+    for k in range(200):
+        decisions.append(tr.on_message("telemetry", _tel(armed=True, in_air=(k // 2) % 2 == 0), 30.0 + 0.1 * k))
+    assert not any(d.start for d in decisions)
+    starts, stops = [], []
+    for k in range(300):  # 30 s: 10 s flying, 20 s landed and disarmed
+        flying = k < 100
+        d = tr.on_message("telemetry", _tel(armed=flying, in_air=flying), 60.0 + 0.1 * k)
+        starts += [d.start] if d.start else []
+        stops += [d.stop] if d.stop else []
+    assert starts == ["flying for 0.5 s: armed and in the air (telemetry)"]
+    assert stops == ["landed: not flying for 2 s (disarmed, on the ground (telemetry))"]
+    # telemetry gone for longer than its timeout: the controller's setpoints decide again
+    assert tr.on_message("setpoint", _sp(2000, 6.0), 100.0).start == ""
+    assert tr.on_message("setpoint", _sp(2001, 6.0), 100.6).start.endswith("thrust commanded (controller)")
+
+
+def test_operator_stop_in_the_air_waits_for_a_landing_and_start_is_manual():
     tr = FlightTracker(RecorderConfig())
     tr.on_message("state", _st(0), 0.0)
     tr.on_message("setpoint", _sp(0, 5.0), 0.0)
+    assert tr.on_message("setpoint", _sp(1, 5.0), 0.6).start
     assert tr.command("stop")[0].stop == "operator stop"
-    assert not tr.on_message("setpoint", _sp(1, 5.0), 0.02).start, "still in the air: no automatic restart"
-    tr.on_message("setpoint", _sp(2, 0.0), 0.04)
-    assert tr.on_message("setpoint", _sp(3, 5.0), 0.06).start
+    assert not tr.on_message("setpoint", _sp(2, 5.0), 2.0).start, "still in the air: no automatic restart"
+    tr.on_message("setpoint", _sp(3, 0.0), 2.1)
+    tr.on_message("state", _st(50), 4.0)
+    assert not tr.tick(4.2).start
+    tr.on_message("setpoint", _sp(4, 5.0), 4.3)
+    assert tr.on_message("setpoint", _sp(5, 5.0), 4.9).start
     tr2 = FlightTracker(RecorderConfig(auto=False))
     tr2.on_message("state", _st(0), 0.0)
     assert not tr2.on_message("setpoint", _sp(0, 5.0), 0.0).start
+    assert not tr2.on_message("setpoint", _sp(1, 5.0), 1.0).start
     assert tr2.command("start")[0].start == "operator start"
     assert tr2.on_message("setpoint", _sp(70, 0.0), 5.0).stop == "", "a manual recording ends by command only"
+    assert tr2.tick(9.0).stop == ""
     with pytest.raises(ValueError):
         tr2.command("pause")
 
