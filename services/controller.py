@@ -102,13 +102,13 @@ class ControllerCore:
             return True, "armed: take-off allowed"
         if name == "disarm":
             if not self.mission.idle:
-                return False, f"refused: disarm only on the ground (segment {self.mission.segment})"
+                return False, f"disarm only on the ground (segment {self.mission.segment})"
             self.armed = False
             return True, "disarmed"
         if name in ("hold", "abort") and self.mission.idle:
-            return False, f"refused: on the ground (idle), nothing to {name}"
+            return False, f"on the ground (idle), nothing to {name}"
         if name in _NEEDS_ARMING and not self.armed:
-            return False, f"refused: {name} needs the vehicle armed (send arm first)"
+            return False, f"{name} needs the vehicle armed (send arm first)"
         self._pending_command = (name, dict(args))
         return True, f"{name} starts at the next sample"
 

@@ -368,7 +368,7 @@ def run(args, bus) -> int:
                 if not verdict.passed:
                     node.event("warning", f"candidate {path} refused: {verdict.reason}; active {core.network_id} "
                                           "keeps flying")
-                    return False, f"refused: {verdict.reason}"
+                    return False, verdict.reason
                 message = core.accept(verdict, path)
                 publish_network()
             node.event("info", message)

@@ -356,8 +356,8 @@ class Px4Link:
                 with self.node.lock:
                     age = self.core.setpoint_age_s(time.monotonic())
                 if age < 0 or age > 0.2:
-                    return False, ("refused: no setpoint streamed yet" if age < 0 else
-                                   f"refused: the last setpoint is {age:.2f} s old (stream setpoints first)")
+                    return False, ("no setpoint streamed yet" if age < 0 else
+                                   f"the last setpoint is {age:.2f} s old (stream setpoints first)")
                 self.offboard.start()
                 with self.node.lock:
                     self.core.clear_failsafe()

@@ -232,9 +232,9 @@ def _run_sim(node, config: SourceConfig) -> None:
             return False, f"unknown command {name!r}; the sim source takes: scenario"
         wanted = args.get("name")
         if wanted not in SCENARIOS:
-            return False, f"refused: scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
+            return False, f"scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
         if config.lockstep:
-            return False, "refused: a lockstep flight cannot switch scenario (restart it)"
+            return False, "a lockstep flight cannot switch scenario (restart it)"
         next_scenario[:] = [wanted]
         return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
 
