@@ -1,5 +1,5 @@
 """The `neso` commands a new user runs first, as real subprocesses with no bus running: offline
-training into the registry, the networks listed (shipped and trained)."""
+training into the registry, the networks listed (shipped and trained), a refused what-if."""
 from __future__ import annotations
 
 import json
@@ -36,3 +36,8 @@ def test_train_with_no_bus_trains_here_stores_in_the_registry_and_networks_list_
     refused = neso_run("train", str(rrd), "--offline", "--registry", str(registry))  # offer asked, offline
     assert refused.returncode == 1 and refused.stdout.count("\n") == 1 and "--no-offer" in refused.stdout
 
+
+def test_what_if_with_a_negative_bound_is_refused_in_one_line_without_a_warning():
+    out = neso_run("replay", "recordings/examples/nominal-landing-eso.rrd", "--what-if", "L_N=-1")
+    assert out.returncode == 1 and out.stdout == "error: L_N=-1: must be a positive number\n", out.stdout
+    assert out.stderr == "", out.stderr  # numpy's ComplexWarning leaked here

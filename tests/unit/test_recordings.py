@@ -316,6 +316,16 @@ def test_what_if_reproduces_the_flown_estimate_and_tells_another_one_apart():
     assert other.flown_err_rms_mps2 == same.flown_err_rms_mps2 and other.whatif_err_rms_mps2 != same.whatif_err_rms_mps2
     with pytest.raises(ValueError, match="unknown what-if setting"):
         WhatIf.parse("gain=3")
+    # the network named is the one that ran: the one trained for L_N = 0.5, or base-L1 scaled to 0.3
+    trained = what_if(rec, WhatIf.parse("pathway=neural_eso,L_N=0.5"))
+    assert trained.config["network"] == "base-L0.5@L0.5 (file networks/base-L0.5.safetensors)"
+    scaled = what_if(rec, WhatIf.parse("pathway=neural_eso,L_N=0.3"))
+    assert scaled.config["network"] == "base-L1.0@L0.3 (scaled networks/base-L1.safetensors)"
+    assert "unused" in what_if(rec, WhatIf.parse("L_N=0.5")).config["network"], "flown under eso"
+    for bad, why in (("L_N=-1", "positive"), ("L_N=nan", "positive"), ("omega_o=x", "not a number"),
+                     ("pathway=fast", "not one of"), ("network=no/such.safetensors", "no such file")):
+        with pytest.raises(ValueError, match=why):
+            WhatIf.parse(bad)
 
 
 def test_bus_schedule_is_in_flight_order_and_paced_by_sample_time():
