@@ -8,6 +8,7 @@ wrote a channel's fields in one chunk, so a crash never leaves a message with so
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -47,6 +48,8 @@ class Channel:
         for i in range(len(self)):
             values = {}
             for spec in specs:
+                if spec.name not in self.columns:
+                    continue  # a field added to the schema after the file was written: its default
                 v = self.columns[spec.name][i]
                 if spec.kind == "integer":
                     v = int(v)
@@ -163,9 +166,16 @@ def read_recording(path: str | Path) -> Recording:
     return rec
 
 
+def _has_default(cls, name: str) -> bool:
+    """Whether a message field has a default (so it may be absent from files written before it)."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    return f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+
+
 def _channel_columns(channel: str, batches: list) -> dict[str, object] | None:
     """Field → values of one channel's messages in publication order (row ids are monotonic);
-    None if a field is missing (not a channel this version wrote)."""
+    None if a field is missing (not a channel this version wrote), unless the schema gives it a
+    default (a field added later: the rebuilt messages carry the default)."""
     cls = message_type(channel)
     specs = fields_of(cls)
     rows = [b for b in batches if component(cls, specs[0].name) in b.schema.names]  # not the TextLog chunks
@@ -176,7 +186,10 @@ def _channel_columns(channel: str, batches: list) -> dict[str, object] | None:
     out: dict[str, object] = {}
     for spec in specs:
         name = component(cls, spec.name)
-        if any(name not in b.schema.names for b in rows):
+        present = [name in b.schema.names for b in rows]
+        if not any(present) and _has_default(cls, spec.name):
+            continue  # a field the schema added after the file was written: messages get its default
+        if not all(present):
             return None
         flat = [b.column(name).flatten() for b in rows]
         if spec.kind in ("number", "integer", "flag"):

@@ -24,12 +24,13 @@ EXAMPLES: list[Message] = [
     EstimateMsg(seq=3, stamp_s=1.0, t_s=0.06, f_hat_mps2=V3, f_n_mps2=V3, delta_f_hat_mps2=V3,
                 z=(1.0, 0.0, 9.81, 0.01, -0.02), pathway="neural_eso", network_id="base-L1", warm_ticks=4),
     SetpointMsg(seq=3, stamp_s=1.0, state_stamp_s=0.9, t_s=0.06, roll_rad=0.0, pitch_rad=0.1, yaw_rad=0.0,
-                thrust_norm=0.5, thrust_n=9.81, acc_cmd_enu_mps2=V3, estimate_source="local_eso"),
+                thrust_norm=0.5, thrust_n=9.81, acc_cmd_enu_mps2=V3, estimate_source="estimator", estimate_stamp_s=0.95),
     ReferenceMsg(seq=3, stamp_s=1.0, t_s=0.06, pos_enu_m=V3, vel_enu_mps=V3, acc_enu_mps2=V3, yaw_rad=0.0,
                  segment="landing_test"),
     EventMsg(stamp_s=1.0, service="controller", level="warning", text="flying on the local ESO"),
     HealthMsg(stamp_s=1.0, service="estimator", pid=42, uptime_s=3.0, ticks=150, rate_hz=50.0, latency_p50_ms=0.1,
-              latency_p99_ms=0.3, rejected={"state": 2.0}, staleness_s={"state": 0.01}, status="ok"),
+              latency_p99_ms=0.3, rejected={"state": 2.0}, staleness_s={"state": 0.01}, status="ok",
+              counters={"deadline_misses": 3.0}),
     ParamRequest(op="set", values={"pathway": "eso", "lipschitz_bound": 0.5}),
     ParamReply(ok=False, service="estimator", values={"pathway": "eso"}, error="why"),
     ParamStateMsg(stamp_s=1.0, service="estimator", seq=10, values={"pathway": "eso"}, note="pathway eso"),
@@ -49,6 +50,16 @@ EXAMPLES: list[Message] = [
 def all_message_classes():
     return {cls for cls in vars(schema).values()
             if isinstance(cls, type) and issubclass(cls, Message) and cls is not Message}
+
+
+def test_fields_added_later_have_defaults_so_older_payloads_still_decode():
+    """estimate_stamp_s and counters came after the first recordings and peers: a payload without them decodes."""
+    import msgpack
+
+    for msg, name, default in ((EXAMPLES[3], "estimate_stamp_s", 0.0), (EXAMPLES[6], "counters", {})):
+        body = msgpack.unpackb(msg.to_bytes())
+        del body[name]
+        assert getattr(type(msg).from_bytes(msgpack.packb(body)), name) == default
 
 
 def test_every_message_class_has_an_example():
