@@ -391,3 +391,27 @@ def test_a_recorder_that_cannot_write_reports_it_and_keeps_running(tmp_path):
     assert not thread.is_alive() and rec.errors >= 2 and reports and reports[0][0] == "error"
     assert "not-a-folder" in rec.last_error and rec.writer is None
     assert statuses and not statuses[-1].recording
+
+
+def test_what_the_viewer_plots_z_alone_named_the_loop_latency_and_the_trail(tmp_path):
+    """The viewer's legends list no hidden x/y series, the latency plot has a value per sample, the
+    3D view has the positions its trail is drawn from."""
+    from rerun.chunk import RrdReader
+
+    msgs = flight_messages(60)
+    write(tmp_path / "f.rrd", msgs)
+    columns: dict[str, list] = {}
+    for chunk in RrdReader(str(tmp_path / "f.rrd")).stream():
+        batch = chunk.to_record_batch()
+        for name in ("Scalars:scalars", "SeriesLines:names", "Points3D:positions"):
+            if name in batch.schema.names:
+                columns.setdefault(f"{chunk.entity_path}|{name}", []).extend(batch.column(name).to_pylist())
+    assert columns["/neso/uav1/estimate/f_hat_mps2|SeriesLines:names"] == [["f̂ z"]]
+    f_hat = columns["/neso/uav1/estimate/f_hat_mps2|Scalars:scalars"]
+    assert f_hat == [[m.f_hat_mps2[2]] for c, m in msgs if c == "estimate"], "one series: z"
+    assert columns["/neso/uav1/state/pos_enu_m|SeriesLines:names"] == [["state z"]]
+    latency = [v for (v,) in columns["/neso/uav1/setpoint/loop_latency_ms|Scalars:scalars"]]
+    assert latency == pytest.approx([(m.stamp_s - m.state_stamp_s) * 1e3 for c, m in msgs if c == "setpoint"])
+    trail = columns["/neso/uav1/state/point|Points3D:positions"]
+    states = [m for c, m in msgs if c == "state"]
+    assert len(trail) == 60 and trail[5][0] == pytest.approx(states[5].pos_enu_m), "a position per sample"
