@@ -20,10 +20,10 @@ def _num(v, fmt: str) -> str:
     return "—" if v is None else format(v, fmt)
 
 
-def shipped_rows(folder: str) -> list[dict]:
-    """One row per readable network file in ``folder`` (not its sub-folders: the registry lives
-    there), shaped like a registry row, ``where: shipped``; the small-gain verdict at the
-    trainer's z gains (the registry's convention), at the network's certified physical bound."""
+def shipped_rows(folder: str, registry: Path) -> list[dict]:
+    """One row per network file under ``folder`` (the registry's excepted), shaped like a registry
+    row, ``where: shipped``; the small-gain verdict at the trainer's z gains (the registry's
+    convention), at the network's certified physical bound."""
     from neso.netfile import NetworkFileError, load_network
     from services.estimator import DEFAULT_NETWORK
     from services.registry import small_gain_certificate
@@ -31,7 +31,9 @@ def shipped_rows(folder: str) -> list[dict]:
 
     gains = TrainerConfig()
     rows = []
-    for path in sorted(Path(folder).glob("*.safetensors")):
+    for path in sorted(Path(folder).rglob("*.safetensors")):
+        if path.resolve().is_relative_to(registry.resolve()):
+            continue
         try:
             net = load_network(path)
         except NetworkFileError as exc:
@@ -53,7 +55,7 @@ def shipped_rows(folder: str) -> list[dict]:
 def run(args) -> int:
     from services.registry import entries
 
-    rows = shipped_rows(args.shipped) + [dict(e.row(), where="registry")
+    rows = shipped_rows(args.shipped, Path(args.registry)) + [dict(e.row(), where="registry")
                                          for e in entries(args.registry, args.vehicle)]
     if args.json:
         print(json.dumps(rows, indent=1))

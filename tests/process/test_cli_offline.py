@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
+from services.estimator import DEFAULT_NETWORK
 from tests.busutil import REPO, free_port
 from tests.unit.test_recordings import flight_messages, write
 
@@ -26,12 +28,15 @@ def test_train_with_no_bus_trains_here_stores_in_the_registry_and_networks_list_
     assert "trained offline: uav1-tdr-" in out.stdout and "Traceback" not in out.stderr
     listed = neso_run("networks", "list", "--registry", str(registry), "--json")
     rows = json.loads(listed.stdout)
-    shipped = {r["id"]: r for r in rows if r["where"] == "shipped"}
+    shipped = [r for r in rows if r["where"] == "shipped"]
     trained = [r for r in rows if r["where"] == "registry"]
-    assert {"base-L1.0", "base-L0.5", "tdr"} <= set(shipped) and shipped["base-L1.0"]["flown_by_default"]
-    assert len(trained) == 1 and trained[0]["parent"] == "base-L1.0" and trained[0]["label"] == "tdr"
+    on_disk = sorted((Path(REPO) / "networks").rglob("*.safetensors"))
+    assert sorted(Path(REPO, r["path"]).resolve() for r in shipped) == [p.resolve() for p in on_disk]
+    (default,) = [r for r in shipped if r["flown_by_default"]]
+    assert Path(REPO, default["path"]).resolve() == Path(REPO, DEFAULT_NETWORK).resolve()
+    assert len(trained) == 1 and trained[0]["parent"] == default["id"] and trained[0]["label"] == "tdr"
     table = neso_run("networks", "list", "--registry", str(registry)).stdout
-    assert "shipped  base-L1.0 *" in table and "registry " in table
+    assert f"shipped  {default['id']} *" in table and "registry " in table
 
     refused = neso_run("train", str(rrd), "--offline", "--registry", str(registry))  # offer asked, offline
     assert refused.returncode == 1 and refused.stdout.count("\n") == 1 and "--no-offer" in refused.stdout
