@@ -115,10 +115,11 @@ class Dashboard:
     """The running dashboard: observer → model → view, plus the bus facade for controls."""
 
     def __init__(self, bus, *, host: str, port: int, ui_rate_hz: float = 20.0, window_s: float = 10.0,
-                 phys_per_norm: float | None = None, default_vehicle: str = "uav1") -> None:
+                 phys_per_norm: float | None = None, lipschitz_phys: float | None = None,
+                 default_vehicle: str = "uav1") -> None:
         import viser
 
-        from dashboard.model import FleetModel
+        from dashboard.model import Certificates, FleetModel, default_certificate_inputs
         from dashboard.view import DashboardView
         from runtime.observer import Observer
 
@@ -133,8 +134,11 @@ class Dashboard:
             self.facade.close()
             self.observer.close()
             raise PortTaken(f"port {port} is taken (viser would have moved to {actual}): choose --port")
+        self.certificates = Certificates(self.facade.compute)
+        if lipschitz_phys is not None:  # what a vehicle flying the defaults will show: ready before a page opens
+            self.certificates.get(default_certificate_inputs(lipschitz_phys))
         self.view = DashboardView(self.server, self.model, self.lock, self.facade, phys_per_norm=phys_per_norm,
-                                  default_vehicle=default_vehicle)
+                                  certificates=self.certificates, default_vehicle=default_vehicle)
         self.period_s = 1.0 / ui_rate_hz
         self._seeded: set[tuple[str, str]] = set()
         self._stop = threading.Event()
@@ -194,19 +198,19 @@ class Dashboard:
         self.observer.close()
 
 
-def physical_factor(network_path: str) -> float | None:
-    """(physical L_N) / (normalised L_N) of the network file the estimator flies, for the
-    certificate when no network report is on the bus (None if the file cannot be read)."""
+def network_units(network_path: str) -> tuple[float | None, float | None]:
+    """(physical L_N / normalised L_N, physical L_N) of the network file the estimator flies, for
+    the certificate until a network report is on the bus ((None, None) if it cannot be read)."""
     if not network_path:
-        return None
+        return None, None
     try:
         from neso.netfile import load_network
 
         net = load_network(network_path)
-        return net.lipschitz_bound_physical() / net.lipschitz_bound
+        return net.lipschitz_bound_physical() / net.lipschitz_bound, net.lipschitz_bound_physical()
     except Exception as exc:
         print(f"[dashboard] cannot read {network_path} for the L_N units: {exc}", flush=True)
-        return None
+        return None, None
 
 
 # -- service entry points ---------------------------------------------------------------------
@@ -229,7 +233,7 @@ def run(args, bus) -> int:
 
     if args.nice:
         os.nice(args.nice)
-    factor = physical_factor(args.network)
+    factor, lipschitz_phys = network_units(args.network)
     stopping = threading.Event()
     holder: list[Dashboard] = []
 
@@ -242,7 +246,7 @@ def run(args, bus) -> int:
     while not stopping.is_set():
         try:
             dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
-                             phys_per_norm=factor, default_vehicle=args.vehicle)
+                             phys_per_norm=factor, lipschitz_phys=lipschitz_phys, default_vehicle=args.vehicle)
             break
         except PortTaken as exc:  # wait for it rather than crash-loop: the flight never depends on the page
             print(f"[dashboard] {exc}; trying again in {PORT_RETRY_S:g} s", flush=True)
