@@ -1,15 +1,18 @@
-"""``neso networks list``: what the network registry holds (id, vehicle, label, bound, val loss, certificate)."""
+"""``neso networks list``: the networks the estimator can fly — the shipped ones in ``networks/`` and
+the trained ones in the registry — with their bound, validation loss and small-gain verdict."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    p = subparsers.add_parser("networks", help="the network registry")
+    p = subparsers.add_parser("networks", help="the shipped networks and the network registry")
     sub = p.add_subparsers(dest="networks_command", required=True)
-    lp = sub.add_parser("list", help="every stored network, oldest first")
+    lp = sub.add_parser("list", help="shipped networks (networks/), then every stored one (registry), oldest first")
+    lp.add_argument("--shipped", default="networks", help="folder of the shipped networks (default networks)")
     lp.add_argument("--registry", default="networks/registry")
-    lp.add_argument("--vehicle", default=None, help="only this vehicle's networks")
+    lp.add_argument("--vehicle", default=None, help="only this vehicle's registry networks")
     lp.add_argument("--json", action="store_true")
 
 
@@ -17,20 +20,64 @@ def _num(v, fmt: str) -> str:
     return "—" if v is None else format(v, fmt)
 
 
+def shipped_rows(folder: str, registry: Path) -> list[dict]:
+    """One row per network file under ``folder`` (the registry's excepted), shaped like a registry
+    row, ``where: shipped``; the small-gain verdict at the trainer's z gains (the registry's
+    convention), at the network's certified physical bound."""
+    from neso.netfile import NetworkFileError, load_network
+    from services.estimator import DEFAULT_NETWORK
+    from services.registry import small_gain_certificate
+    from services.trainer import TrainerConfig
+
+    gains = TrainerConfig()
+    rows = []
+    for path in sorted(Path(folder).rglob("*.safetensors")):
+        if path.resolve().is_relative_to(registry.resolve()):
+            continue
+        try:
+            net = load_network(path)
+        except NetworkFileError as exc:
+            rows.append({"where": "shipped", "id": path.stem, "path": str(path), "error": str(exc)})
+            continue
+        meta = net.metadata
+        certified = net.certified_lipschitz_physical()
+        cert = small_gain_certificate(certified, kp=gains.kp, kd=gains.kd, omega_o=gains.omega_o_rps)
+        val = meta.get("val_loss")
+        rows.append({"where": "shipped", "id": meta.get("id", path.stem), "vehicle": meta.get("vehicle", ""),
+                     "label": meta.get("training_data", "").split(":")[0], "parent": "" if meta.get("warm_start", "no") == "no" else meta["warm_start"],
+                     "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
+                     "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
+                     "val_loss": float(val) if val else None, "certificate_holds": cert["holds"],
+                     "flown_by_default": path.resolve() == Path(DEFAULT_NETWORK).resolve(), "path": str(path)})
+    return rows
+
+
 def run(args) -> int:
     from services.registry import entries
 
-    rows = [e.row() for e in entries(args.registry, args.vehicle)]
+    rows = shipped_rows(args.shipped, Path(args.registry)) + [dict(e.row(), where="registry")
+                                         for e in entries(args.registry, args.vehicle)]
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
     if not rows:
-        print(f"no networks in {args.registry}")
+        print(f"no networks in {args.shipped} or {args.registry}")
         return 0
-    print(f"{'id':44} {'label':5} {'L_N norm':>8} {'L_N phys':>9} {'val loss':>9} {'small-gain':>10}  parent / recordings")
+    print(f"{'where':8} {'id':44} {'label':12} {'L_N norm':>8} {'L_N phys':>9} {'val loss':>9} {'small-gain':>10}  "
+          "parent / trained on")
     for r in rows:
+        if "error" in r:
+            print(f"{r['where']:8} {r['id']:44} UNREADABLE: {r['error']}")
+            continue
         cert = {True: "holds", False: "no", None: "—"}[r["certificate_holds"]]
-        recs = ", ".join(p.rsplit("/", 1)[-1] for p in r["recordings"])
-        print(f"{r['id']:44} {r['label']:5} {_num(r['lipschitz_norm'], '8.3g')} {_num(r['lipschitz_phys'], '9.4g')} "
-              f"{_num(r['val_loss'], '9.4g')} {cert:>10}  {r['parent'] or '—'} / {recs}")
+        source = r.get("training_data") or ", ".join(p.rsplit("/", 1)[-1] for p in r.get("recordings", []))
+        mark = " *" if r.get("flown_by_default") else ""
+        print(f"{r['where']:8} {r['id'] + mark:44} {r['label'][:12]:12} {_num(r['lipschitz_norm'], '8.3g')} "
+              f"{_num(r['lipschitz_phys'], '9.4g')} {_num(r['val_loss'], '9.4g')} {cert:>10}  "
+              f"{r['parent'] or '—'} / {source or '—'}")
+    if not any(r["where"] == "registry" for r in rows):
+        print(f"(registry {args.registry}: empty — `neso train` stores there)")
+    if any(r.get("flown_by_default") for r in rows):
+        print("* flown by the estimator by default (--network); small-gain: the tight certificate at the trainer's "
+              "z gains for the network's certified physical L_N")
     return 0

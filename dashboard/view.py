@@ -1,20 +1,26 @@
-"""The viser page: 3D scene, live plots, figures, health and controls.
+"""The viser page: a status line always in view, the followed vehicle in 3D, live plots, figures,
+health and controls.
 
-The view reads the model (under the service's model lock) and renders at a throttled rate;
-controls only hand a request to the bus facade (:class:`dashboard.service.BusFacade`), which
-runs it on a worker thread and reports the reply back here. Nothing in a UI callback blocks.
+Layout: the status line (:func:`dashboard.model.status_line`, colour-coded) floats at the top of the
+3D view, which follows the vehicle (:mod:`dashboard.scene`); the plots (altitude, z error,
+disturbance, thrust, attitude; pause, drag to zoom, double-click to reset) are docked left, the
+figures, events, health and controls right. The view reads the model (under the service's model
+lock) and renders at a throttled rate; controls only hand a request to the bus facade
+(:class:`dashboard.service.BusFacade`), which runs it on a worker thread and reports the reply back
+here. Nothing in a UI callback blocks.
 """
 from __future__ import annotations
 
+import html
 import math
 import threading
 import time
 
 import numpy as np
 
-from dashboard.model import FleetModel, VehicleModel
+from dashboard.model import FleetModel, StatusItem, VehicleModel, certificate_shown, status_line
 from dashboard.provenance import provenance_line
-from neso.rotations import world_from_body_zyx
+from dashboard.scene import Scene
 
 PATHWAYS = ("neural_eso", "eso", "nn", "none")
 RISKY_PATHWAYS = ("nn", "none")  # no online correction: confirm while airborne
@@ -25,6 +31,11 @@ PX4_COMMANDS = (("PX4 arm", "arm", None), ("PX4 offboard", "offboard_start", Non
                 ("PX4 land", "land", None), ("PX4 disarm", "disarm", None))  # px4_gateway (--vehicle mavlink)
 SCENARIOS = {"nominal": "nominal_landing", "slope": "ood_slope", "turbulence": "lemniscate_near_ground"}
 PLOT_POINTS = 300  # points per series sent to the browser
+PLOTS_WIDTH_PX = 470  # left column; the right one is viser's "medium" control width
+PLOT_HEIGHT_PX = 106  # five plots and their legends fit an 800 px high window without scrolling
+STATUS_WIDTH_PX = 360  # the floating status line fits the 3D view of a 1280 px wide window
+LEVEL_RGB = {"ok": "#2b8a3e", "info": "#1864ab", "warn": "#e8590c", "bad": "#c92a2a", "off": "#868e96"}
+EVENTS_SHOWN = 6
 
 
 def _predicted(candidate: dict) -> str:
@@ -61,12 +72,22 @@ def _ffill(a: np.ndarray) -> np.ndarray:
     return a[idx]
 
 
-def _quat_wxyz(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    r = world_from_body_zyx(roll, pitch, yaw)
-    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
-    if w < 1e-6:
-        return (0.0, 1.0, 0.0, 0.0)
-    return (w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w))
+def status_html(vehicle: str, items: list[StatusItem]) -> str:
+    """The status line as coloured badges (text escaped: it carries names from the bus)."""
+    badges = [f'<span data-slot="vehicle" style="font:700 14px sans-serif;margin-right:4px">{html.escape(vehicle)}</span>']
+    for it in items:
+        badges.append(f'<span data-slot="{it.slot}" data-level="{it.level}" title="{html.escape(it.detail)}" '
+                      f'style="background:{LEVEL_RGB[it.level]};color:#fff;border-radius:4px;padding:1px 6px;'
+                      f'margin:2px;display:inline-block;font:600 12.5px sans-serif;white-space:nowrap">'
+                      f'{html.escape(it.text)}</span>')
+    return f'<div style="line-height:1.6">{"".join(badges)}</div>'
+
+
+def _series(label: str, stroke: str, width: float = 1.5, dash: list | None = None) -> dict:
+    out = {"label": label, "stroke": stroke, "width": width}
+    if dash:
+        out["dash"] = dash
+    return out
 
 
 class DashboardView:
@@ -77,37 +98,21 @@ class DashboardView:
         self.selected = default_vehicle
         self._text_cache: dict[int, str] = {}
         self._pending_pathway: tuple[str, str] | None = None
-        self._scenario_drawn = ""
         self._build()
 
     # -- page ------------------------------------------------------------------------------
     def _build(self) -> None:
-        s, gui = self.server.scene, self.server.gui
-        s.set_up_direction("+z")
-        # shadows and the image-based environment light cost most of a software-rendered frame
-        # (Chromium without a GPU: 4 fps with them, see dashboard/README.md); plain lights instead
-        s.configure_default_lights(cast_shadow=False)
-        s.configure_environment_map(hdri=None)
-        self.server.initial_camera.position = (1.4, -1.6, 1.5)
-        self.server.initial_camera.look_at = (0.0, 0.0, 0.6)
-        s.add_grid("/ground", width=6.0, height=6.0, cell_size=0.25, section_size=1.0, plane_color=(236, 240, 236),
-                   plane_opacity=0.6)
-        s.add_frame("/world", axes_length=0.3, axes_radius=0.008)
-        self.vehicle_frame = s.add_frame("/vehicle", axes_length=0.22, axes_radius=0.01)
-        s.add_box("/vehicle/body", dimensions=(0.25, 0.25, 0.05), color=(40, 60, 90))
-        for i, (x, y) in enumerate(((0.127, 0.127), (-0.127, 0.127), (-0.127, -0.127), (0.127, -0.127))):
-            s.add_cylinder(f"/vehicle/rotor{i}", radius=0.06, height=0.01, color=(200, 80, 60) if x > 0 else (90, 90, 90),
-                           position=(x, y, 0.03))
-        self.trail = s.add_point_cloud("/trail", points=np.zeros((1, 3), np.float32), colors=(30, 110, 220),
-                                       point_size=0.02, point_shape="circle")
-        self.ref_path = s.add_point_cloud("/reference", points=np.zeros((1, 3), np.float32), colors=(240, 150, 20),
-                                          point_size=0.014, point_shape="circle")
-        self.slope = None
-
-        gui.configure_theme(control_width="large", show_share_button=False, brand_color=(30, 90, 160))
+        gui = self.server.gui
+        self.scene = Scene(self.server)
+        gui.configure_theme(control_width="medium", show_share_button=False, brand_color=(30, 90, 160))
         gui.main_panel.dock_right()
-        self.title = gui.add_markdown("**Neural-ESO** · waiting for a vehicle")
+
+        status = gui.add_panel()
+        with status.add_tab("Status"):
+            self.status = gui.add_html(status_html(self.selected, []))
+        status.float(x=-6, y=6, width=STATUS_WIDTH_PX)  # top right: viser's notices appear top left
         self.provenance = gui.add_markdown("")  # live, or a replay and of what (dashboard/provenance.py)
+
         self.vehicle_dd = gui.add_dropdown("Vehicle", (self.selected,), initial_value=self.selected)
         self.vehicle_dd.on_update(lambda _: self._select(self.vehicle_dd.value))
         tabs = gui.add_tab_group()
@@ -156,30 +161,44 @@ class DashboardView:
 
         plots = gui.add_panel()
         with plots.add_tab("Live plots"):
+            self.pause = gui.add_checkbox("Pause plots", False, hint="freeze the plots (the flight goes on); "
+                                          "drag across a plot to zoom in time, double-click to zoom out")
+            self.paused_note = gui.add_markdown("", visible=False)
             x_scale = {"x": {"time": False}}
-            self.alt_plot = gui.add_uplot(
-                (np.zeros(2), np.zeros(2), np.zeros(2)),
-                ({"label": "t (s)"}, {"label": "z (m)", "stroke": "#1f6fd0", "width": 2},
-                 {"label": "z ref (m)", "stroke": "#f08c14", "width": 2, "dash": [6, 4]}),
-                title="Altitude", scales=x_scale, aspect=2.0)
-            self.err_plot = gui.add_uplot(
-                (np.zeros(2), np.zeros(2)), ({"label": "t (s)"}, {"label": "z error (cm)", "stroke": "#d03030", "width": 2}),
-                title="z tracking error", scales=x_scale, aspect=2.4)
-            self.dist_plot = gui.add_uplot(
-                (np.zeros(2),) * 5,
-                ({"label": "t (s)"}, {"label": "f_N", "stroke": "#8e44ad", "width": 1.5},
-                 {"label": "Δf̂", "stroke": "#27ae60", "width": 1.5}, {"label": "f̂", "stroke": "#2c3e50", "width": 2},
-                 {"label": "truth", "stroke": "#aaaaaa", "width": 1, "dash": [3, 3]}),
-                title="Disturbance z (m/s²)", scales=x_scale, aspect=2.0)
-            self.thrust_plot = gui.add_uplot(
-                (np.zeros(2), np.zeros(2)), ({"label": "t (s)"}, {"label": "thrust (N)", "stroke": "#16a085", "width": 2}),
-                title="Thrust", scales=x_scale, aspect=2.4)
+            axes = ({"size": 22, "ticks": {"size": 4}}, {"size": 44})
+
+            def plot(title: str, *series: dict):
+                """No title row: the plot is named in its legend, so five fit. With up to two series the
+                legend shows values on hover (the name rides on x: its value is the time); with more, names
+                only (values would wrap it to two lines), the name on the first series."""
+                live = len(series) <= 2
+                if not live:
+                    series = ({**series[0], "label": f"{title}: {series[0]['label']}"},) + series[1:]
+                return gui.add_uplot((np.zeros(2),) * (len(series) + 1),
+                                     ({"label": f"{title} · t (s)" if live else "t (s)"},) + series,
+                                     scales=x_scale, axes=axes, height=PLOT_HEIGHT_PX, padding=(8, 12, 0, 0),
+                                     legend={"live": live})
+
+            self.alt_plot = plot("Altitude (m)", _series("z", "#1f6fd0", 2), _series("z ref", "#f08c14", 2, [6, 4]))
+            self.err_plot = plot("z tracking error (cm)", _series("z − ref", "#d03030", 2))
+            self.dist_plot = plot("Disturbance z (m/s²)", _series("f_N", "#8e44ad"), _series("Δf̂", "#27ae60"),
+                                  _series("f̂", "#2c3e50", 2), _series("truth", "#aaaaaa", 1, [3, 3]))
+            self.thrust_plot = plot("Thrust (N)", _series("thrust", "#16a085", 2))
+            self.att_plot = plot("Attitude (°)", _series("roll", "#c2255c"),
+                                 _series("roll setpoint", "#c2255c", 1, [5, 3]), _series("pitch", "#1c7ed6"),
+                                 _series("pitch setpoint", "#1c7ed6", 1, [5, 3]))
         plots.dock_left()
-        plots.set_width(460)
+        plots.set_width(PLOTS_WIDTH_PX)
+        self.server.on_client_connect(lambda client: client.camera.on_update(lambda _: self._on_camera(client)))
+
+    def _on_camera(self, client) -> None:
+        """A page reported its camera: frame it on the vehicle (once)."""
+        with self.lock:
+            self.scene.frame(client)
 
     # -- helpers ---------------------------------------------------------------------------
     def _set(self, handle, text: str) -> None:
-        """Send markdown only when it changed (the browser is not re-sent identical text)."""
+        """Send text only when it changed (the browser is not re-sent identical text)."""
         if self._text_cache.get(id(handle)) != text:
             self._text_cache[id(handle)] = text
             handle.content = text
@@ -258,77 +277,65 @@ class DashboardView:
 
     # -- rendering -------------------------------------------------------------------------
     def render_pose(self) -> None:
-        """Vehicle pose and trails (cheap; called at the fast UI rate)."""
+        """Vehicle pose, trail, reference, camera (cheap; called at the fast UI rate)."""
         v = self._vehicle()
         state = v.latest.get("state")
         if state is None:
             return
-        self.vehicle_frame.position = np.array(state.pos_enu_m)
-        self.vehicle_frame.wxyz = np.array(_quat_wxyz(state.roll_rad, state.pitch_rad, state.yaw_rad))
-        if len(v.trail) > 1:
-            self.trail.points = np.array(v.trail, dtype=np.float32)[-600:]
-        if len(v.ref_trail) > 1:
-            self.ref_path.points = np.array(v.ref_trail, dtype=np.float32)[-600:]
+        ref = v.latest.get("reference")
+        fresh_ref = ref if ref is not None and time.monotonic() - v.received.get("reference", -1e9) < 1.0 else None
+        self.scene.update(state, v.trail, v.ref_trail, fresh_ref)
 
     def render(self, now_s: float) -> None:
-        """Plots, figures and panels of the selected vehicle (called at the slow UI rate)."""
+        """Status, plots, figures and panels of the selected vehicle (called at the slow UI rate)."""
         names = sorted(self.model.vehicles) or [self.selected]
         if tuple(self.vehicle_dd.options) != tuple(names):
             self.vehicle_dd.options = tuple(names)
         if self.selected not in self.model.vehicles and self.model.vehicles:
             self.selected = names[0]
         v = self._vehicle()
-        self._render_scene_extras(v)
-        self._render_plots(v)
-        self._render_text(v, now_s)
-
-    def _render_scene_extras(self, v: VehicleModel) -> None:
         truth = v.latest.get("truth")
-        scenario = truth.scenario if truth is not None else ""
-        if scenario == self._scenario_drawn:
-            return
-        self._scenario_drawn = scenario
-        if self.slope is not None:
-            self.slope.remove()
-            self.slope = None
-        if scenario == "ood_slope":
-            from sim.terrain import SlopeTerrain  # the simulator's ramp geometry, drawn as it is simulated
-
-            t = SlopeTerrain()
-            x0, x1, tan_s = t.landing_x_m + t.edge_offset_m, 2.5, math.tan(math.radians(t.slope_deg))
-            verts = np.array([[x0, -2.5, 0.0], [x1, -2.5, (x1 - x0) * tan_s], [x1, 2.5, (x1 - x0) * tan_s],
-                              [x0, 2.5, 0.0]], dtype=np.float32)
-            self.slope = self.server.scene.add_mesh_simple("/slope", verts, np.array([[0, 1, 2], [0, 2, 3]]),
-                                                           color=(160, 130, 90), opacity=0.7, side="double")
+        self.scene.show_scenario(truth.scenario if truth is not None else "")
+        cert = certificate_shown(v)
+        self._set(self.status, status_html(v.name, status_line(v, now_s, cert, dashboard_dropped=self.model.dropped)))
+        self._render_plots(v)
+        self._render_text(v, now_s, cert)
 
     def _render_plots(self, v: VehicleModel) -> None:
+        paused = bool(self.pause.value)
+        if paused != self.paused_note.visible:
+            self.paused_note.visible = paused
+        if paused:
+            state = v.latest.get("state")
+            self._set(self.paused_note, "⏸ **plots paused** — the flight goes on" +
+                      (f" (now t = {state.t_s:.1f} s)" if state is not None else ""))
+            return
         w = v.window()
         if len(w["t"]) < 2:
             return
         w = _decimate(w, PLOT_POINTS)
         t = w["t"] - w["t"][-1]  # seconds before now
-        z, ref = _ffill(w["z"]), _ffill(w["ref_z"])
-        self.alt_plot.data = (t, z, ref)
+        self.alt_plot.data = (t, _ffill(w["z"]), _ffill(w["ref_z"]))
         err = np.where(np.isfinite(w["z"]) & np.isfinite(w["ref_z"]), (w["z"] - w["ref_z"]) * 100.0, np.nan)
         self.err_plot.data = (t, _ffill(err))
         self.dist_plot.data = (t, _ffill(w["f_n_z"]), _ffill(w["df_hat_z"]), _ffill(w["f_hat_z"]),
                                _ffill(w["truth_dist_z"]))
         self.thrust_plot.data = (t, _ffill(w["thrust_n"]))
+        deg = 180.0 / math.pi
+        self.att_plot.data = (t, _ffill(w["roll"]) * deg, _ffill(w["roll_sp"]) * deg, _ffill(w["pitch"]) * deg,
+                              _ffill(w["pitch_sp"]) * deg)
 
-    def _render_text(self, v: VehicleModel, now_s: float) -> None:
+    def _render_text(self, v: VehicleModel, now_s: float, cert) -> None:
         state, est, ref = v.latest.get("state"), v.latest.get("estimate"), v.latest.get("reference")
-        cert = v.certificate()
         rms_z, rms_3d = v.tracking_rms_m()
         lat50, lat99 = v.loop_latency_ms()
         bus50, bus99 = v.bus_latency_ms()
         lp, ln = v.lipschitz()
-        segment = ref.segment if ref is not None and now_s - v.received.get("reference", -1e9) < 1.0 else "idle"
+        misses, span = v.per_minute("source", "deadline_misses", now_s)
+        falls, _ = v.per_minute("controller", "local_eso_fallbacks", now_s)
         rec = v.latest.get("recording")
         rec_text = "not recorded (no recorder on the bus)" if rec is None else (
             f"● REC `{rec.path}` · {rec.duration_s:.1f} s" if rec.recording else "recorder idle")
-        self._set(self.title, f"### {v.name} · {segment} · pathway **{est.pathway if est else '–'}**  \n"
-                              f"certificate **{'–' if cert is None else ('HOLDS' if cert.holds else 'FAILS')}** · "
-                              f"{rec_text}")
         self._set(self.provenance, provenance_line(v, now_s))
         if state is not None:
             pose = (f"x {state.pos_enu_m[0]:+.3f} y {state.pos_enu_m[1]:+.3f} **z {state.pos_enu_m[2]:.3f} m** · "
@@ -339,26 +346,32 @@ class DashboardView:
         net = v.latest.get("network")
         origin = (str(net.active.get("source", "")) if net is not None else
                   v.param_notes.get("estimator", "as loaded at start"))
+        segment = ref.segment if ref is not None and now_s - v.received.get("reference", -1e9) < 1.0 else "idle"
         lines = [
             f"**Pose** (t = {_fmt(state.t_s if state else math.nan, '.2f')} s, flight {v.flights + 1}): {pose}",
-            f"**Reference z** {_fmt(ref.pos_enu_m[2] if ref else math.nan, '.3f', ' m')}",
+            f"**Reference z** {_fmt(ref.pos_enu_m[2] if ref else math.nan, '.3f', ' m')} · segment {segment}",
             "",
             "| figure | value |", "|---|---|",
             f"| tracking RMS z / 3D ({v.window_s:g} s) | {_fmt(rms_z * 100, '.2f')} / {_fmt(rms_3d * 100, '.2f')} cm |",
             f"| loop rate | {_fmt(v.loop_rate_hz(), '.1f')} Hz |",
+            f"| misses / local-ESO (last {span:.0f} s) | {_fmt(misses, '.0f')} / {_fmt(falls, '.0f')} |",
             f"| loop latency state→setpoint p50/p99 | {_fmt(lat50, '.2f')} / {_fmt(lat99, '.2f')} ms |",
             f"| bus → dashboard p50/p99 | {_fmt(bus50, '.2f')} / {_fmt(bus99, '.2f')} ms |",
             f"| pathway | {est.pathway if est else '–'} |",
-            f"| network | `{est.network_id if est else '–'}` |",
+            f"| network | `{est.network_id if est else '–'}` ({origin[:120]}) |",
             f"| L_N physical / normalised | {_fmt(lp, '.4g')} (m/s²)/unit z / {_fmt(ln, '.4g')} |",
-            f"| network origin | {origin[:160]} |",
             f"| ω_o | {_fmt(v.omega_o_rps(), '.1f', ' rad/s')} |",
-            f"| certificate | {cert.text if cert else 'waiting for the estimator'} |",
+            f"| certificate | {cert.text} |",
             f"| canary | {(net.canary.get('last') or 'idle') if net is not None else '–'} |",
+            f"| recording | {rec_text} |",
         ]
         self._set(self.figures, "\n".join(lines))
-        events = [f"- `{e.service}` {e.level}: {e.text[:140]}" for e in list(v.events)[-5:]]
-        self._set(self.events, "**Events**\n\n" + ("\n".join(events) if events else "_none_"))
+        events = []
+        for g in v.recent_events(EVENTS_SHOWN):
+            ago = max(0.0, now_s - g.last_s)
+            count = f" **×{g.count}**" if g.count > 1 else ""
+            events.append(f"- `{g.service}` {g.level}{count} ({ago:.0f} s ago): {g.text[:220]}")
+        self._set(self.events, "**Events** (repeats grouped)\n\n" + ("\n".join(events) if events else "_none_"))
         rows = ["| service | alive | rate | stale | rejected | status |", "|---|---|---|---|---|---|"]
         for name, sh in sorted(v.services.items()):
             h = sh.health

@@ -35,6 +35,10 @@ class MissionConfig:
     land_speed_mps: float = 0.3
     at_point_tol_m: float = 0.02  # closer than this, no transit is flown
     landed_height_m: float = 0.04  # measured height under which a landing is complete
+    # ... or: the land reference has been on the floor this long and the vehicle is this low (a vehicle
+    # rests on its feet: the simulated one's body origin at 0.05 m, above landed_height_m)
+    landed_settle_s: float = 1.0
+    landed_max_height_m: float = 0.15
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,9 +156,16 @@ class Mission:
         self._last = current.trajectory.sample(t_s - current.start_s)
         return self._last
 
-    def landed(self, measured_height_m: float) -> bool:
-        """True once a ``land`` reached the floor: the caller idles the motors."""
-        if self.segment == "land" and measured_height_m < self.config.landed_height_m:
+    def landed(self, measured_height_m: float, t_s: float = -math.inf) -> bool:
+        """True once a ``land`` reached the floor: the measured height (m) is below
+        ``landed_height_m``, or at ``t_s`` the land reference has been on the floor for
+        ``landed_settle_s`` and the vehicle is below ``landed_max_height_m`` (resting on its
+        feet). The caller idles the motors."""
+        if self.segment != "land":
+            return False
+        c, seg = self.config, self._segments[0]
+        settled = t_s >= seg.start_s + seg.trajectory.duration_s + c.landed_settle_s
+        if measured_height_m < c.landed_height_m or (settled and measured_height_m < c.landed_max_height_m):
             self.idle, self._segments, self.segment = True, [], "idle"
             return True
         return False

@@ -28,18 +28,22 @@ SERVICE_KINDS: dict[str, type[Message]] = {"event": EventMsg, "health": HealthMs
 KINDS = ("number", "integer", "flag", "vector", "text", "json")
 TIMELINES = ("stamp", "seq", "t")
 POSE_ENTITY = "pose"  # neso/<v>/state/pose: the body transform for the 3D view
-REFERENCE_POINT = "point"  # neso/<v>/reference/point: the reference position in 3D
+REFERENCE_POINT = "point"  # neso/<v>/reference/point: the reference position in 3D (and state/point: the vehicle's)
+LOOP_LATENCY = "loop_latency_ms"  # neso/<v>/setpoint/loop_latency_ms: state published → setpoint published, per sample
+TRAIL_S = 10.0  # the 3D view shows the last seconds of positions as the trail and the reference path
 ARENA_ENTITY = "scene/arena"  # static: the floor square the 3D view frames
 ARENA_HALF_SIZE_M = 1.5
 VECTOR_SERIES = ("x", "y", "z")
-# vector fields plotted with only their z series visible (the rest a click away in the legend)
 # (channel kind, field) also logged as Scalars for the viewer
 PLOTTED = {("state", "pos_enu_m"), ("state", "vel_enu_mps"), ("reference", "pos_enu_m"), ("truth", "pos_enu_m"),
            ("truth", "disturbance_acc_enu_mps2"), ("estimate", "f_hat_mps2"), ("estimate", "f_n_mps2"),
            ("estimate", "delta_f_hat_mps2"), ("setpoint", "thrust_n"), ("setpoint", "roll_rad"),
            ("setpoint", "pitch_rad"), ("health", "latency_p50_ms"), ("health", "latency_p99_ms"), ("health", "rate_hz")}
-Z_ONLY = {("state", "pos_enu_m"), ("reference", "pos_enu_m"), ("truth", "pos_enu_m"), ("estimate", "f_hat_mps2"),
-          ("estimate", "f_n_mps2"), ("estimate", "delta_f_hat_mps2"), ("truth", "disturbance_acc_enu_mps2")}
+# vector fields plotted as their z component alone (a legend listing hidden x/y series was noise; the
+# whole vector is on the channel's entity): field → the series' name in a legend
+Z_ONLY = {("state", "pos_enu_m"): "state z", ("reference", "pos_enu_m"): "reference z", ("truth", "pos_enu_m"): "true z",
+          ("estimate", "f_hat_mps2"): "f̂ z", ("estimate", "f_n_mps2"): "f_N z", ("estimate", "delta_f_hat_mps2"): "Δf̂ z",
+          ("truth", "disturbance_acc_enu_mps2"): "true disturbance z"}
 
 
 @dataclass(frozen=True)
@@ -102,28 +106,34 @@ def parse_channel_entity(path: str) -> tuple[str, str] | None:
 
 
 def blueprint(vehicle: str):
-    """The viewer layout: the 3D scene beside the time series an operator looks at."""
+    """The viewer layout: the 3D scene, following the vehicle with its trail and reference path,
+    beside the time series an operator looks at."""
     import rerun.blueprint as rrb
 
     v = f"/{ROOT}/{vehicle}"
     series = [
-        ("height (m): state, reference, truth", [f"{v}/state/pos_enu_m", f"{v}/reference/pos_enu_m", f"{v}/truth/pos_enu_m"]),
-        ("z: f̂, f_N, Δf̂, true disturbance (m/s²)", [f"{v}/estimate/f_hat_mps2", f"{v}/estimate/f_n_mps2",
-                                                   f"{v}/estimate/delta_f_hat_mps2", f"{v}/truth/disturbance_acc_enu_mps2"]),
+        ("height z (m): state, reference, truth", [f"{v}/state/pos_enu_m", f"{v}/reference/pos_enu_m", f"{v}/truth/pos_enu_m"]),
+        ("disturbance z (m/s²): f̂, f_N, Δf̂, truth", [f"{v}/estimate/f_hat_mps2", f"{v}/estimate/f_n_mps2",
+                                                     f"{v}/estimate/delta_f_hat_mps2", f"{v}/truth/disturbance_acc_enu_mps2"]),
         ("thrust (N)", [f"{v}/setpoint/thrust_n"]),
         ("attitude setpoint (rad)", [f"{v}/setpoint/roll_rad", f"{v}/setpoint/pitch_rad"]),
-        ("in-service latency p99 (ms)", [f"{v}/health/{s}/latency_p99_ms" for s in ("estimator", "controller", "source")]),
+        ("loop latency state → setpoint (ms)", [f"{v}/setpoint/{LOOP_LATENCY}"]),
     ]
-    views = [rrb.TimeSeriesView(name=name, origin="/", contents=[f"+ {p}" for p in paths]) for name, paths in series]
+    views = [rrb.TimeSeriesView(name=name, origin="/", contents=[f"+ {p}" for p in paths],
+                                plot_legend=rrb.PlotLegend("LeftTop")) for name, paths in series]
+    trail = rrb.VisibleTimeRange("t", start=rrb.TimeRangeBoundary.cursor_relative(seconds=-TRAIL_S),
+                                 end=rrb.TimeRangeBoundary.cursor_relative())
+    scene = rrb.Spatial3DView(
+        name="3D", origin="/",
+        contents=[f"+ {v}/state/{POSE_ENTITY}/**", f"+ {v}/state/{REFERENCE_POINT}", f"+ {v}/reference/{REFERENCE_POINT}",
+                  f"+ /{ARENA_ENTITY}"],
+        time_ranges=[trail],
+        eye_controls=rrb.EyeControls3D(position=(0.8, -1.1, 1.0), look_target=(0.0, 0.0, 0.4),
+                                       tracking_entity=f"{v}/state/{POSE_ENTITY}"),
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial3DView(name="3D", origin="/", contents=[f"+ {v}/state/{POSE_ENTITY}/**",
-                                                                    f"+ {v}/reference/{REFERENCE_POINT}",
-                                                                    f"+ /{ARENA_ENTITY}"]),
-                rrb.TextLogView(name="events", origin=f"{v}/event"),
-                row_shares=[3, 1],
-            ),
+            rrb.Vertical(scene, rrb.TextLogView(name="events", origin=f"{v}/event"), row_shares=[3, 1]),
             rrb.Vertical(*views),
             column_shares=[2, 3],
         ),

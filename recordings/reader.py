@@ -8,6 +8,7 @@ wrote a channel's fields in one chunk, so a crash never leaves a message with so
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -47,6 +48,8 @@ class Channel:
         for i in range(len(self)):
             values = {}
             for spec in specs:
+                if spec.name not in self.columns:
+                    continue  # a field added to the schema after the file was written: its default
                 v = self.columns[spec.name][i]
                 if spec.kind == "integer":
                     v = int(v)
@@ -166,9 +169,16 @@ def read_recording(path: str | Path) -> Recording:
 _ROW_ID = "rerun.controls.RowId"
 
 
+def _has_default(cls, name: str) -> bool:
+    """Whether a message field has a default (so it may be absent from files written before it)."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    return f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+
+
 def _channel_columns(channel: str, batches: list) -> dict[str, object] | None:
     """Field → values of one channel's messages in publication order (row ids are monotonic);
-    None if a field is missing (not a channel this version wrote). A flush writes a channel's fields in
+    None if a field is missing (not a channel this version wrote), unless the schema gives it a default
+    (a field added later: the rebuilt messages carry the default). A flush writes a channel's fields in
     one chunk, but a compacted file may hold them in several (Rerun splits a chunk by component, e.g. long
     event texts apart from the rest): each field is gathered by row id from whichever chunks hold it."""
     cls = message_type(channel)
@@ -176,6 +186,8 @@ def _channel_columns(channel: str, batches: list) -> dict[str, object] | None:
     ids = None
     for spec in fields_of(cls):
         found = _component(batches, component(cls, spec.name), spec.kind)
+        if found is None and _has_default(cls, spec.name):
+            continue  # a field the schema added after the file was written: messages get its default
         if found is None:
             return None
         rows, values = found

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,7 +139,10 @@ class WhatIf:
 
     @classmethod
     def parse(cls, text: str) -> "WhatIf":
-        """``pathway=eso,lipschitz_bound=0.5,omega_o=20,network=networks/x.safetensors``."""
+        """``pathway=eso,lipschitz_bound=0.5,omega_o=20,network=networks/x.safetensors``; a
+        ``ValueError`` naming the setting that is wrong (before anything is computed)."""
+        from runtime.schema import PATHWAYS
+
         names = {"pathway": "pathway", "lipschitz_bound": "lipschitz_bound", "L_N": "lipschitz_bound",
                  "omega_o": "omega_o_rps", "omega_o_rps": "omega_o_rps", "network": "network"}
         values: dict = {}
@@ -150,7 +154,20 @@ class WhatIf:
             k, v = part.split("=", 1)
             if k not in names:
                 raise ValueError(f"unknown what-if setting {k!r}; known: {sorted(names)}")
-            values[names[k]] = float(v) if names[k] in ("lipschitz_bound", "omega_o_rps") else v
+            if names[k] in ("lipschitz_bound", "omega_o_rps"):
+                try:
+                    number = float(v)
+                except ValueError:
+                    raise ValueError(f"{k}={v}: not a number") from None
+                if not (math.isfinite(number) and number > 0):
+                    raise ValueError(f"{k}={v}: must be a positive number")
+                values[names[k]] = number
+            elif names[k] == "pathway" and v not in PATHWAYS:
+                raise ValueError(f"pathway={v}: not one of {', '.join(PATHWAYS)}")
+            elif names[k] == "network" and not Path(v).is_file():
+                raise ValueError(f"network={v}: no such file")
+            else:
+                values[names[k]] = v
         return cls(**values)
 
 
@@ -212,10 +229,13 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
         if refusal:
             raise ValueError(refusal)
 
+    cores: list[EstimatorCore] = []  # one per recorded segment; the last one names the network that ran
+
     def make_core(dt_s: float) -> EstimatorCore:
         core = EstimatorCore(dataclasses.replace(config, dt_s=dt_s), network, choice)
         if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound_physical()):
             core.apply({"lipschitz_bound": float(bound)})
+        cores.append(core)
         return core
 
     ours = run_estimator(states, setpoints, make_core)
@@ -231,7 +251,12 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
         dist = np.array([truth[s].disturbance_acc_enu_mps2 for s in common])
         flown_err = tuple(np.sqrt(np.mean((b - dist) ** 2, axis=0)))
         whatif_err = tuple(np.sqrt(np.mean((a - dist) ** 2, axis=0)))
-    used = {"pathway": pathway, "lipschitz_bound": bound, "omega_o_rps": config.omega_o_rps, "network": config.network}
+    core = cores[-1]
+    info = core.active_info  # the network that ran: the file asked for, one trained for L_N, or one scaled to it
+    ran = f"{core.network_id} ({info.get('source')} {info.get('path')})" if network is not None else "none"
+    if pathway == "eso":
+        ran += ", unused: the eso pathway flies no network"
+    used = {"pathway": pathway, "lipschitz_bound": bound, "omega_o_rps": config.omega_o_rps, "network": ran}
     return Comparison(config=used, samples=len(common), diff_rms_mps2=tuple(np.sqrt(np.mean(d**2, axis=0))),
                       diff_max_mps2=tuple(np.max(np.abs(d), axis=0)), flown_err_rms_mps2=flown_err,
                       whatif_err_rms_mps2=whatif_err, f_hat_whatif_mps2=a, f_hat_flown_mps2=b, seq=np.array(common),

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from recordings.layout import (APPLICATION_ID, ARENA_ENTITY, ARENA_HALF_SIZE_M, POSE_ENTITY, REFERENCE_POINT,
-                               SAMPLED_TOPICS, VECTOR_SERIES, Z_ONLY, blueprint, channel_entity, component, entity,
-                               fields_of, is_plotted, message_type)
+from recordings.layout import (APPLICATION_ID, ARENA_ENTITY, ARENA_HALF_SIZE_M, LOOP_LATENCY, POSE_ENTITY,
+                               REFERENCE_POINT, SAMPLED_TOPICS, VECTOR_SERIES, Z_ONLY, blueprint, channel_entity,
+                               component, entity, fields_of, is_plotted, message_type)
 from runtime.schema import EventMsg, Message, ROOT
 
 _TEXT_LEVEL = {"info": "INFO", "warning": "WARN", "error": "ERROR"}
@@ -117,18 +117,37 @@ class FlightWriter:
 
     def _static_scene(self) -> None:
         rr = self._rr
-        body = f"{ROOT}/{self.vehicle}/state/{POSE_ENTITY}/body"
-        rr.log(body, rr.Boxes3D(half_sizes=[[0.12, 0.12, 0.03]], colors=[[80, 160, 255]]), static=True, recording=self.rec)
+        pose = f"{ROOT}/{self.vehicle}/state/{POSE_ENTITY}"
+        # the vehicle at its real size (0.37 m across the rotors): body, two arms, four rotor discs
+        rr.log(f"{pose}/body", rr.Boxes3D(centers=[[0, 0, 0], [0, 0, 0], [0, 0, 0]],
+                                          half_sizes=[[0.08, 0.08, 0.025], [0.185, 0.01, 0.006], [0.185, 0.01, 0.006]],
+                                          rotation_axis_angles=[rr.RotationAxisAngle([0, 0, 1], 0.0),
+                                                                rr.RotationAxisAngle([0, 0, 1], 0.785398),
+                                                                rr.RotationAxisAngle([0, 0, 1], -0.785398)],
+                                          colors=[[40, 60, 90]] * 3, fill_mode="solid"),
+               static=True, recording=self.rec)
+        rotors = [[0.13, 0.13, 0.02], [-0.13, 0.13, 0.02], [-0.13, -0.13, 0.02], [0.13, -0.13, 0.02]]
+        rr.log(f"{pose}/rotors", rr.Cylinders3D(lengths=[0.012] * 4, radii=[0.065] * 4, centers=rotors,
+                                                colors=[[210, 70, 50], [80, 80, 80], [80, 80, 80], [210, 70, 50]],
+                                                fill_mode="solid"), static=True, recording=self.rec)
         h = ARENA_HALF_SIZE_M
         rr.log(ARENA_ENTITY, rr.LineStrips3D([[[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0], [-h, -h, 0]]],
                                              colors=[[160, 160, 160]]), static=True, recording=self.rec)
-        for topic in SAMPLED_TOPICS:  # name the components of vector series; show z alone where z is what matters
+        for topic in SAMPLED_TOPICS:  # name the plotted series; vectors where z is what matters: z alone
             for spec in fields_of(message_type(topic)):
                 if spec.kind == "vector" and is_plotted(topic, spec.name):
-                    visible = [False, False, True] if (topic, spec.name) in Z_ONLY else [True, True, True]
-                    rr.log(entity(self.vehicle, topic, spec.name),
-                           rr.SeriesLines(names=[f"{topic} {spec.name} {c}" for c in VECTOR_SERIES], visible_series=visible),
-                           static=True, recording=self.rec)
+                    names = [Z_ONLY[(topic, spec.name)]] if (topic, spec.name) in Z_ONLY else \
+                        [f"{topic} {spec.name} {c}" for c in VECTOR_SERIES]
+                    rr.log(entity(self.vehicle, topic, spec.name), rr.SeriesLines(names=names), static=True,
+                           recording=self.rec)
+        rr.log(entity(self.vehicle, "setpoint", LOOP_LATENCY), rr.SeriesLines(names=["state → setpoint"]), static=True,
+               recording=self.rec)
+        rr.log(f"{ROOT}/{self.vehicle}/state/{REFERENCE_POINT}", rr.Points3D.from_fields(colors=[[30, 110, 220]],
+                                                                                       radii=[0.012]),
+               static=True, recording=self.rec)
+        rr.log(f"{ROOT}/{self.vehicle}/reference/{REFERENCE_POINT}", rr.Points3D.from_fields(colors=[[240, 140, 20]],
+                                                                                           radii=[0.01]),
+               static=True, recording=self.rec)
 
     # -- messages -----------------------------------------------------------------------
     def add(self, channel: str, msg: Message) -> None:
@@ -186,11 +205,17 @@ class FlightWriter:
             columns.append(_field_column(component(cls, spec.name), spec.kind, values))
             if is_plotted(channel, spec.name):
                 arr = np.array(values, dtype=float)
+                if (topic, spec.name) in Z_ONLY:
+                    arr = arr[:, 2]
                 scalars = rr.Scalars.columns(scalars=arr.reshape(-1))
                 if arr.ndim == 2:
                     scalars = scalars.partition([arr.shape[1]] * len(msgs))
                 rr.send_columns(entity(self.vehicle, channel, spec.name), indexes=indexes, columns=scalars,
                                 recording=self.rec)
+        if topic == "setpoint":
+            latency_ms = (stamps - np.array([m.state_stamp_s for m in msgs], dtype=float)) * 1e3
+            rr.send_columns(entity(self.vehicle, channel, LOOP_LATENCY), indexes=indexes,
+                            columns=rr.Scalars.columns(scalars=latency_ms), recording=self.rec)
         rr.send_columns(channel_entity(self.vehicle, channel), indexes=indexes, columns=columns, recording=self.rec)
         if isinstance(msgs[0], EventMsg):
             rr.send_columns(f"{ROOT}/{self.vehicle}/{channel}/log", indexes=indexes,
@@ -199,6 +224,9 @@ class FlightWriter:
                             recording=self.rec)
         if topic == "state":
             self._send_pose(msgs, indexes)
+            rr.send_columns(f"{ROOT}/{self.vehicle}/state/{REFERENCE_POINT}", indexes=indexes,
+                            columns=rr.Points3D.columns(positions=np.array([m.pos_enu_m for m in msgs])),
+                            recording=self.rec)
         elif topic == "reference":
             rr.send_columns(f"{ROOT}/{self.vehicle}/reference/{REFERENCE_POINT}", indexes=indexes,
                             columns=rr.Points3D.columns(positions=np.array([m.pos_enu_m for m in msgs])),

@@ -296,7 +296,9 @@ class SetpointMsg(Message):
     estimator must be told acted over the next period: the nominal acceleration it produces
     (m/s²) and the commanded thrust (N). ``estimate_source`` says which f̂ the controller used
     (``px4``: none of ours, PX4's own controller commanded it: a flight imported from its log).
-    ``state_stamp_s`` echoes the state's ``stamp_s`` (end-to-end latency)."""
+    ``state_stamp_s`` echoes the state's ``stamp_s`` (end-to-end latency); ``estimate_stamp_s``
+    the used estimate's ``stamp_s`` (0: none, the local ESO flew), so a late setpoint tells
+    which process took the time."""
 
     TYPE: ClassVar[str] = "setpoint"
     seq: int = f(_SEQ)
@@ -310,6 +312,7 @@ class SetpointMsg(Message):
     thrust_n: float = f(_number(0.0, 1e4))
     acc_cmd_enu_mps2: tuple = f(_ACC)
     estimate_source: str = f(_text(ESTIMATE_SOURCES))
+    estimate_stamp_s: float = f(_STAMP, default=0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -340,7 +343,8 @@ class EventMsg(Message):
 class HealthMsg(Message):
     """Once a second. ``rate_hz``: outputs per second; ``latency_*_ms``: input received → output
     published inside the service; ``rejected``: malformed payloads per input key since start;
-    ``staleness_s``: seconds since the last valid message per input (−1: none yet)."""
+    ``staleness_s``: seconds since the last valid message per input (−1: none yet); ``counters``:
+    what the service counts since it started (``deadline_misses``, ``local_eso_fallbacks``, …)."""
 
     TYPE: ClassVar[str] = "health"
     stamp_s: float = f(_STAMP)
@@ -354,6 +358,7 @@ class HealthMsg(Message):
     rejected: dict = f(_numbers_by_name)
     staleness_s: dict = f(_numbers_by_name)
     status: str = f(_text(max_len=1024))
+    counters: dict = f(_numbers_by_name, default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)

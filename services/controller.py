@@ -101,6 +101,8 @@ class ControllerCore:
         self._last_output: list = []
         self.armed = config.mission != "idle"
         self.network_certificate: dict = {}  # the estimator's latest NetworkMsg.certificate
+        self.fallbacks = 0  # times the local ESO took over
+        self._newest_estimate: tuple[int, float] | None = None  # (seq, arrival) of the newest estimate
 
     # -- the certificate ------------------------------------------------------------------
     def on_network(self, msg: NetworkMsg) -> None:
@@ -139,13 +141,13 @@ class ControllerCore:
             return True, "armed: take-off allowed"
         if name == "disarm":
             if not self.mission.idle:
-                return False, f"refused: disarm only on the ground (segment {self.mission.segment})"
+                return False, f"disarm only on the ground (segment {self.mission.segment})"
             self.armed = False
             return True, "disarmed"
         if name in ("hold", "abort") and self.mission.idle:
-            return False, f"refused: on the ground (idle), nothing to {name}"
+            return False, f"on the ground (idle), nothing to {name}"
         if name in _NEEDS_ARMING and not self.armed:
-            return False, f"refused: {name} needs the vehicle armed (send arm first)"
+            return False, f"{name} needs the vehicle armed (send arm first)"
         self._pending_command = (name, dict(args))
         return True, f"{name} starts at the next sample"
 
@@ -181,6 +183,8 @@ class ControllerCore:
 
 
     def on_estimate(self, est: EstimateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
+        if self._newest_estimate is None or est.seq >= self._newest_estimate[0]:
+            self._newest_estimate = (est.seq, now_s)
         if est.seq < self._last_stepped:
             return []
         self._estimates[est.seq] = est
@@ -202,9 +206,13 @@ class ControllerCore:
         if self.using_local or p is None or (not unanswered and now_s - p.waiting_since_s < self.config.stale_timeout_s):
             return []
         self.using_local = True
+        self.fallbacks += 1
         why = f"{unanswered} samples" if unanswered else f"{self.config.stale_timeout_s * 1e3:.0f} ms"
+        newest = (f"the estimator's newest answer was for sample {self._newest_estimate[0]}, "
+                  f"{(now_s - self._newest_estimate[1]) * 1e3:.0f} ms ago" if self._newest_estimate else
+                  "no estimate arrived yet")
         self.events.append(("warning", f"no estimate for sample {p.state.seq} and the ones before it within "
-                                       f"{why}: flying on the local ESO"))
+                                       f"{why}: flying on the local ESO ({newest})"))
         return self._step(local_f_hat=True, now_s=now_s)
 
     # -- internals ----------------------------------------------------------------------
@@ -243,9 +251,10 @@ class ControllerCore:
                     self.events.append(("warning", "abort: landing now"))
             else:
                 self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
-        f_hat = self._pending_local if local_f_hat else np.array(self._estimates[p.state.seq].f_hat_mps2)
+        used = None if local_f_hat else self._estimates[p.state.seq]
+        f_hat = self._pending_local if used is None else np.array(used.f_hat_mps2)
         ref = self.mission.reference(p.state.t_s)
-        if ref is not None and self.mission.landed(p.meas.pos_enu_m[2]):
+        if ref is not None and self.mission.landed(p.meas.pos_enu_m[2], p.state.t_s):
             ref = None
             self.events.append(("info", "landed: motors idle"))
         if ref is None:
@@ -265,7 +274,8 @@ class ControllerCore:
                           roll_rad=setpoint.roll_rad, pitch_rad=setpoint.pitch_rad, yaw_rad=setpoint.yaw_rad,
                           thrust_norm=setpoint.thrust_norm, thrust_n=setpoint.thrust_n,
                           acc_cmd_enu_mps2=vec(self._applied.acc_cmd_enu_mps2),
-                          estimate_source="local_eso" if local_f_hat else "estimator")
+                          estimate_source="local_eso" if local_f_hat else "estimator",
+                          estimate_stamp_s=0.0 if used is None else used.stamp_s)
         self._last_output = [(msg, reference)]
         return self._last_output
 
@@ -301,6 +311,7 @@ def run(args, bus) -> int:
     put_setpoint, put_reference = node.publisher("setpoint"), node.publisher("reference")
 
     def publish(outputs, received_s: float) -> None:
+        node.stats.set_counter("local_eso_fallbacks", core.fallbacks)
         for setpoint, reference in outputs:
             put_setpoint(setpoint)
             node.stats.output(time.monotonic() - received_s)

@@ -358,8 +358,8 @@ class Px4Link:
                 with self.node.lock:
                     age = self.core.setpoint_age_s(time.monotonic())
                     if age < 0 or age > 0.2 or self.last_attitude is None:
-                        return False, ("refused: no setpoint streamed yet" if age < 0 or self.last_attitude is None
-                                       else f"refused: the last setpoint is {age:.2f} s old (stream setpoints first)")
+                        return False, ("no setpoint streamed yet" if age < 0 or self.last_attitude is None
+                                       else f"the last setpoint is {age:.2f} s old (stream setpoints first)")
                     # MAVSDK drops its setpoint stream at every heartbeat that does not say offboard, and start()
                     # answers NO_SETPOINT_SET until the next setpoint: a start right after a heartbeat (PX4 sends
                     # one on each arming or mode change) failed. Hand it the newest setpoint again first.

@@ -5,12 +5,17 @@ as ``dropped``, never waited for); one writer thread decodes, decides flights an
 :class:`recordings.writer.FlightWriter`, flushing every ``flush_period_s`` (0.1 s) so a crash
 loses at most that much. The control loop never waits for the recorder.
 
-Flights (:class:`FlightTracker`, pure): a flight starts when the vehicle is armed — a setpoint
-with thrust, or telemetry saying armed — and ends when it is disarmed/landed (no thrust for
-``idle_end_s``, telemetry disarmed), when the source restarts (``seq`` goes back) or falls
-silent for ``silence_end_s``. The operator can ``start`` and ``stop`` a recording by command
-(``neso cmd recorder start|stop``); after a ``stop`` in the air, the next flight starts at the
-next arming. The last ``preroll_s`` before the start is written too.
+Flights (:class:`FlightTracker`, pure): a flight is the time the vehicle *flies*, decided on one
+signal at a time and debounced, so it never flaps. With vehicle telemetry on the bus (a PX4
+through the gateway, heard within ``telemetry_timeout_s``) the vehicle's own word decides:
+flying = armed *and* in the air. Without it (the direct simulator, mocap without a gateway) the
+controller's does: flying = thrust commanded (it commands none while idle or landed). A flight
+starts when the signal has said "flying" for ``start_after_s`` without a break and ends when it
+has said "not flying" for ``idle_end_s``; also when the source restarts (``seq`` goes back) or
+falls silent for ``silence_end_s``. The operator can ``start`` and ``stop`` a recording by
+command (``neso cmd recorder start|stop``); after a ``stop`` in the air, the next flight starts
+after the next landing. The last ``preroll_s`` before the start is written too (it covers the
+take-off the debounce waited through).
 
 A recorder restarted during a flight (after a crash) continues it: it finds the flight it was
 writing in ``<dir>/.<vehicle>.active.json`` and writes the next segment (``<flight>.seg<k>.rrd``,
@@ -41,8 +46,10 @@ class RecorderConfig:
     directory: str = DEFAULT_DIR
     flush_period_s: float = 0.1
     params_timeout_s: float = 1.0  # per service, all asked at once at a flight's start (answers take ~1 ms)
-    preroll_s: float = 1.0
-    idle_end_s: float = 1.0
+    preroll_s: float = 2.0  # > start_after_s: the take-off the debounce waited through is in the file
+    start_after_s: float = 0.5  # flying this long without a break starts a flight
+    idle_end_s: float = 2.0  # not flying this long without a break ends it
+    telemetry_timeout_s: float = 2.0  # vehicle telemetry younger than this decides "flying" (else the setpoints)
     silence_end_s: float = 2.0
     resume_window_s: float = 10.0
     auto: bool = True  # flights start and end by themselves (else only by command)
@@ -59,16 +66,20 @@ class Decision:
 
 @dataclass
 class FlightTracker:
-    """Pure flight-boundary logic: feed it messages in arrival order, act on its decisions."""
+    """Pure flight-boundary logic: feed it messages in arrival order (and :meth:`tick` it), act on
+    its decisions. Times are the caller's monotonic seconds."""
 
     config: RecorderConfig
     recording: bool = False
     manual: bool = False
-    suppressed: bool = False  # the operator stopped in the air: wait for the next arming
+    suppressed: bool = False  # the operator stopped in the air: wait for a landing
     last_seq: int = -1
     last_state_s: float = -1.0
-    idle_since_s: float | None = None
     first_seq: int = -1
+    flying: bool = False  # the signal's current value ...
+    since_s: float | None = None  # ... and since when it has had it without a break
+    why: str = ""  # what the signal is ("armed and in the air (telemetry)", ...)
+    telemetry_s: float | None = None  # arrival of the newest telemetry
 
     def on_message(self, channel: str, msg: Message, now_s: float) -> Decision:
         d = Decision()
@@ -77,38 +88,45 @@ class FlightTracker:
                 d.stop = f"the source restarted (sample {msg.seq} after {self.last_seq})"
                 self._stopped()
             self.last_seq, self.last_state_s = msg.seq, now_s
-        elif channel == "setpoint":
-            if msg.thrust_n > 0:
-                self.idle_since_s = None
-                self._arming(d, "armed: thrust commanded")
-            else:
-                self.idle_since_s = now_s if self.idle_since_s is None else self.idle_since_s
-                self.suppressed = False
-                if self.recording and not self.manual and now_s - self.idle_since_s >= self.config.idle_end_s:
-                    d.stop = f"landed: no thrust for {self.config.idle_end_s:g} s"
-                    self._stopped()
         elif channel == "telemetry":
-            if msg.armed:
-                self._arming(d, "armed (telemetry)")
-            else:
-                self.suppressed = False
-                if self.recording and not self.manual:
-                    d.stop = "disarmed (telemetry)"
-                    self._stopped()
+            self.telemetry_s = now_s
+            flying = msg.armed and msg.in_air
+            self._signal(flying, "armed and in the air (telemetry)" if flying else
+                         f"{'armed' if msg.armed else 'disarmed'}, {'in the air' if msg.in_air else 'on the ground'} "
+                         "(telemetry)", now_s)
+        elif channel == "setpoint" and not self._telemetry_decides(now_s):
+            self._signal(msg.thrust_n > 0, "thrust commanded (controller)" if msg.thrust_n > 0 else
+                         "no thrust commanded (controller)", now_s)
+        return self._decide(d, now_s)
+
+    def _telemetry_decides(self, now_s: float) -> bool:
+        return self.telemetry_s is not None and now_s - self.telemetry_s <= self.config.telemetry_timeout_s
+
+    def _signal(self, flying: bool, why: str, now_s: float) -> None:
+        if flying != self.flying or self.since_s is None:
+            self.flying, self.since_s = flying, now_s
+        self.why = why
+
+    def _decide(self, d: Decision, now_s: float) -> Decision:
+        held_s = now_s - self.since_s if self.since_s is not None else 0.0
+        if not self.flying and held_s >= self.config.idle_end_s:
+            self.suppressed = False  # landed: the next take-off is a new flight
+            if self.recording and not self.manual:
+                d.stop = f"landed: not flying for {self.config.idle_end_s:g} s ({self.why})"
+                self._stopped()
+        elif (self.flying and held_s >= self.config.start_after_s and not self.recording and self.config.auto
+              and not self.suppressed and not d.stop and self.last_seq >= 0):
+            d.start = f"flying for {self.config.start_after_s:g} s: {self.why}"
+            self.recording, self.manual, self.first_seq = True, False, self.last_seq
         return d
 
-    def _arming(self, d: Decision, why: str) -> None:
-        if not self.recording and self.config.auto and not self.suppressed and not d.stop and self.last_seq >= 0:
-            d.start = why
-            self.recording, self.manual, self.first_seq = True, False, self.last_seq
-
     def tick(self, now_s: float) -> Decision:
-        """Periodic check: the source fell silent."""
+        """Periodic check: the debounce timers, and a source that fell silent."""
         if (self.recording and not self.manual and self.last_state_s >= 0
                 and now_s - self.last_state_s >= self.config.silence_end_s):
             self._stopped()
             return Decision(stop=f"no state samples for {self.config.silence_end_s:g} s")
-        return Decision()
+        return self._decide(Decision(), now_s)
 
     def command(self, name: str) -> tuple[Decision, str]:
         if name == "start":
@@ -120,7 +138,7 @@ class FlightTracker:
             if not self.recording:
                 return Decision(), "not recording"
             self._stopped()
-            self.suppressed = self.idle_since_s is None  # in the air: no automatic restart until landed
+            self.suppressed = self.flying  # in the air: no automatic restart until landed
             return Decision(stop="operator stop"), "recording stopped"
         raise ValueError(f"unknown recorder command {name!r}; choose start or stop")
 
@@ -307,8 +325,11 @@ class Recorder:
         self._stop.set()
 
     def join_compactions(self, timeout_s: float = 30.0) -> None:
+        """Wait for the background compactions, ``timeout_s`` in all (not each: at a shutdown the
+        launcher allows 2 s). One still running is finished by the next recorder start."""
+        deadline = time.monotonic() + timeout_s
         for thread in self._compactions:
-            thread.join(timeout_s)
+            thread.join(max(0.0, deadline - time.monotonic()))
 
     def _handle(self, item) -> None:
         kind, channel, payload, received = item
@@ -390,6 +411,8 @@ class Recorder:
     def _compact(self, path: Path, what: str) -> None:
         """Rewrite a closed (or crashed) file with merged chunks, in the background."""
         from recordings.reader import RecordingError, repair
+
+        self.pending.add(path)  # until it is done: a recorder stopped meanwhile compacts it at its next start
 
         def work() -> None:
             try:

@@ -4,7 +4,9 @@ Simulator (:class:`SimSource`): steps :class:`sim.quadrotor.QuadrotorSim` one co
 with the newest setpoint and publishes the state (and the truth). Two ways to run:
 
 - real time: one sample every period on the wall clock, the newest setpoint acts (a setpoint
-  that has not arrived by the next sample is a deadline miss: the previous one is held);
+  that has not arrived by the next sample is a deadline miss: the previous one is held; misses
+  are counted in health ``counters`` and explained in a warning event at most once a second:
+  which process took the time, how late, and the machine's load, :mod:`services.deadline`);
 - lockstep: sample k+1 is computed only once setpoint k has arrived, so a run is
   deterministic and reproduces :func:`sim.runner.fly` exactly (same seed, same network).
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -32,6 +35,7 @@ from neso.control import ControlConfig, PositionController
 from neso.rotations import euler_zyx_from_world_from_body
 from neso.types import AttitudeSetpoint
 from runtime.schema import SetpointMsg, StateMsg, TruthMsg, vec
+from services.deadline import DeadlineWatch
 
 # mocap frame → ENU rotations: p_enu = M @ p_mocap
 FRAMES: dict[str, tuple[tuple[float, ...], ...]] = {
@@ -215,9 +219,12 @@ def _run_sim(node, config: SourceConfig) -> None:
     put_state, put_truth = node.publisher("state"), node.publisher("truth")
     arrived = threading.Condition(node.lock)
     misses = [0]
+    watch = DeadlineWatch()
+    last_state: list[StateMsg] = []
 
     def on_setpoint(msg: SetpointMsg, received_s: float) -> None:
         core.take(msg)
+        watch.arrived(msg, received_s)
         arrived.notify_all()
 
     node.subscribe("setpoint", on_setpoint)
@@ -232,9 +239,9 @@ def _run_sim(node, config: SourceConfig) -> None:
             return False, f"unknown command {name!r}; the sim source takes: scenario"
         wanted = args.get("name")
         if wanted not in SCENARIOS:
-            return False, f"refused: scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
+            return False, f"scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
         if config.lockstep:
-            return False, "refused: a lockstep flight cannot switch scenario (restart it)"
+            return False, "a lockstep flight cannot switch scenario (restart it)"
         next_scenario[:] = [wanted]
         return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
 
@@ -251,10 +258,17 @@ def _run_sim(node, config: SourceConfig) -> None:
                 node.event("info", f"world restarted with scenario {core.config.scenario}")
             elif not config.lockstep and core.seq >= 0 and core.setpoint_seq != core.seq:
                 misses[0] += 1
+                node.stats.count("deadline_misses")
+                if last_state and last_state[0].seq == core.seq:
+                    watch.missed(core.seq, last_state[0].stamp_s, time.monotonic())
             state, truth = core.step()
             put_state(state)
             put_truth(truth)
+            last_state[:] = [state]
             node.stats.output(time.monotonic() - state.stamp_s)
+            why = watch.report(time.monotonic(), load_1min=os.getloadavg()[0], cores=os.cpu_count() or 1)
+            if why:
+                node.event("warning", why)
             if config.lockstep:
                 while core.setpoint_seq != state.seq and not node.stopping:
                     if not arrived.wait(config.lockstep_resend_s) and core.setpoint_seq != state.seq:

@@ -120,6 +120,34 @@ def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
     raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")
 
 
+STATUS_JS = """() => Object.fromEntries([...document.querySelectorAll('[data-slot]')]
+    .map(e => [e.dataset.slot, e.textContent]))"""
+PLOT_POINTS_JS = """() => Object.values((window.__viserTestpoints || {}).uplots || {})
+    .map(p => p.chart.data[0].length)"""
+
+
+def status(page) -> dict[str, str]:
+    """The status line: slot → text (source, armed, segment, pathway, network, certificate, recording, link)."""
+    return page.evaluate(STATUS_JS)
+
+
+def wait_status(page, slot: str, pattern: str, timeout_s: float = 10.0) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        got = status(page).get(slot, "")
+        if re.search(pattern, got):
+            return got
+        time.sleep(0.05)
+    raise AssertionError(f"status {slot} never matched {pattern!r}: {status(page)}")
+
+
+def hide_notifications(page) -> None:
+    """viser's "software WebGL" notice (headless Chromium has no GPU; an operator's browser has one)
+    would cover the status line in the screenshots. Hidden by style: a click on a starved page
+    can take longer than the notice is worth."""
+    page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
+
+
 def set_lipschitz(page, value: str, override: bool) -> None:
     """Type ``value`` as the physical L_N, set the override box to ``override``, press Apply L_N."""
     box = page.get_by_label(re.compile(r"^L.N \(physical\)$"))

@@ -38,8 +38,11 @@ class Flight:
         self.probe = Probe(self.s, topics=("state", "truth", "estimate", "setpoint", "reference", "network"))
         self.health: dict[str, HealthMsg] = {}
         self.param_states: list[ParamStateMsg] = []
+        self.events: list[EventMsg] = []
         self.subs = [self.s.declare_subscriber(KEYS.every("health"), self._on_health),
-                     self.s.declare_subscriber(KEYS.every("params"), self._on_params)]
+                     self.s.declare_subscriber(KEYS.every("params"), self._on_params),
+                     self.s.declare_subscriber(KEYS.every("event"),
+                                               lambda s: self.events.append(EventMsg.from_bytes(s.payload.to_bytes())))]
 
     def _pump(self):
         for line in self.proc.stdout:
@@ -240,6 +243,8 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_change_nothing(
 def test_kill_9_of_the_estimator_falls_back_within_3_periods_and_resumes_after_restart(flight):
     old_pid = flight.pid_of("estimator")
     start = flight.latest_seq()
+    n_events = len(flight.events)
+    misses_before = flight.health["source"].counters.get("deadline_misses", 0.0)
     os.kill(old_pid, signal.SIGKILL)
     local = flight.probe.wait_for("setpoint", lambda m: m.estimate_source == "local_eso" and m.seq > start, 2.0)
     last_estimator = max(m.seq for m in flight.probe.get("setpoint")
@@ -252,6 +257,14 @@ def test_kill_9_of_the_estimator_falls_back_within_3_periods_and_resumes_after_r
     seqs = [m.seq for m in flight.probe.get("setpoint") if m.seq >= start]
     assert max(np.diff(seqs)) <= 4, "at most 3 samples without a setpoint"
     print(f"fallback after {local.seq - last_estimator} samples; estimator back at sample {back.seq}")
+    # the operator is told why those samples were late: the source names the stage, the controller what it saw
+    misses = [e.text for e in flight.events[n_events:] if e.service == "source" and "deadline miss" in e.text]
+    assert misses and "late in: estimator" in misses[0] and "the estimator did not answer in time" in misses[0], misses
+    assert any(e.service == "controller" and "the estimator's newest answer was for sample" in e.text
+               for e in flight.events[n_events:])
+    assert flight.health["source"].counters["deadline_misses"] > misses_before
+    assert flight.health["controller"].counters["local_eso_fallbacks"] >= 1
+    print("source:", misses[0])
 
 
 def test_killing_the_hub_leaves_the_running_peers_talking(flight):

@@ -71,3 +71,19 @@ def test_hold_and_abort_on_the_ground_are_refused_with_the_reason():
     for name in ("hold", "abort"):
         ok, why = core.command(name, {})
         assert not ok and "on the ground" in why
+
+
+def test_a_land_ends_with_motors_idle_when_the_vehicle_rests_on_its_feet_above_the_landed_height():
+    """The simulated vehicle's body origin rests 0.05 m above the floor, above ``landed_height_m``:
+    the land still ends (reference on the floor for 1 s, vehicle low), where it used to push on
+    the floor with minimum thrust for ever, and a recorder never saw the flight end."""
+    core = ControllerCore(ControllerConfig(mission="hover"))
+    step(core, 0, 0.3)
+    assert core.command("land", {})[0]
+    thrusts = []
+    for k in range(1, 150):  # 3 s: the 0.35 m transit takes ~1.2 s, then 1 s on the floor
+        setpoint, ref = step(core, k, max(0.05, 0.3 - 0.3 * 0.02 * k))
+        thrusts.append(setpoint.thrust_n)
+    assert thrusts[-1] == 0.0 and thrusts[10] > 0.0
+    assert any("landed" in text for _, text in core.events)
+    assert core.mission.segment == "idle"

@@ -1,14 +1,17 @@
 """The dashboard's model: messages in, figures out (no bus, no browser)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from dashboard.model import FleetModel, VehicleModel
+from dashboard.model import (STATUS_SLOTS, CertificateShown, FleetModel, StatusItem, VehicleModel, certificate_shown,
+                             status_line)
 from dashboard.service import decode_into
-from runtime.schema import (EstimateMsg, HealthMsg, Keys, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg)
+from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, Keys, NetworkMsg, RecordingMsg, ReferenceMsg,
+                            SetpointMsg, StateMsg, TelemetryMsg)
 
 
 def state(seq, z, stamp=100.0):
@@ -131,3 +134,110 @@ def test_a_replayed_flight_is_labelled_not_live_with_its_origin():
     v.ingest("replay", dataclasses.replace(announced, playing=False), 12.0)
     assert provenance_line(v, 12.1).startswith("■ replay ended")
     assert provenance_line(v, 30.0).startswith("■ replay ended"), "the states stopped with it"
+
+
+def health(service, t, **counters):
+    return HealthMsg(stamp_s=t, service=service, pid=1, uptime_s=t, ticks=1, rate_hz=50.0, latency_p50_ms=0.1,
+                     latency_p99_ms=0.2, rejected={}, staleness_s={}, status="ok", counters=counters)
+
+
+def event(text, service="controller", level="warning"):
+    return EventMsg(stamp_s=1.0, service=service, level=level, text=text)
+
+
+def test_repeated_events_are_one_line_with_a_count_newest_first():
+    v = VehicleModel("uav1")
+    for k in range(12):
+        v.ingest_event(event(f"no estimate for sample {100 + k} within 3 samples: flying on the local ESO"), 10.0 + k)
+        if k == 5:
+            v.ingest_event(event("world restarted with scenario ood_slope", "source", "info"), 15.5)
+    first, second = v.recent_events(5)
+    assert (first.count, first.text, first.first_s, first.last_s) == (
+        12, "no estimate for sample 111 within 3 samples: flying on the local ESO", 10.0, 21.0)
+    assert (second.service, second.count) == ("source", 1)
+    for k in range(60):  # a bounded list: old distinct messages go
+        v.ingest_event(event(f"distinct message {chr(65 + k % 26) * (1 + k // 26)}"), 30.0 + k)
+    assert len(v.events) == 40
+
+
+def test_misses_and_fall_backs_are_counted_over_the_last_minute_from_the_health_counters():
+    v = VehicleModel("uav1")
+    assert math.isnan(v.per_minute("source", "deadline_misses", 0.0)[0])
+    for k in range(100):  # 100 s of 1 Hz reports; 2 misses a second for the first 50 s, then none
+        v.ingest_health(health("source", float(k), deadline_misses=float(2 * min(k, 50))), float(k))
+    assert v.per_minute("source", "deadline_misses", 99.0) == (22.0, 60.0)  # 39 → 99 s: 11 s of 2 misses
+    v.ingest_health(health("source", 100.0, deadline_misses=3.0), 100.0)  # restarted: counts from 0
+    assert v.per_minute("source", "deadline_misses", 100.0)[0] == 3.0
+
+
+def test_certificate_shown_waits_for_the_estimator_then_shows_its_verdict():
+    v = VehicleModel("uav1")
+    v.ingest_params("controller", {"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 10.0, "kd_z": 6.0})
+    assert certificate_shown(v).word == "waiting…", "the page computes no certificate of its own"
+    verdict = {"holds": False, "margin": -30.9, "max_certified": 0.763, "lipschitz_phys": 31.6,
+               "text": "FAILS: margin -30.9 (m/s²)/unit z"}
+    v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "n"}, candidate={}, previous={},
+                                   shadow_error_rms_mps2=-1.0, certificate=verdict), 1.0)
+    shown = certificate_shown(v)
+    assert (shown.word, shown.level, shown.text) == ("FAILS", "bad", verdict["text"])
+    v.ingest("network", NetworkMsg(stamp_s=2.0, seq=2, active={"id": "n"}, candidate={}, previous={},
+                                   shadow_error_rms_mps2=-1.0, certificate={**verdict, "holds": True, "margin": 0.2,
+                                                                           "lipschitz_phys": 0.5,
+                                                                           "text": "HOLDS: margin 0.2"}), 2.0)
+    assert (certificate_shown(v).word, certificate_shown(v).level) == ("HOLDS", "ok")
+
+
+def flying(v, t, *, thrust=9.8, source="sim", local=False):
+    for k in range(int(t / 0.02)):
+        s = 100.0 + 0.02 * k
+        v.ingest("state", StateMsg(seq=k, stamp_s=s, t_s=0.02 * k, pos_enu_m=(0.0, 0.0, 1.0), vel_enu_mps=(0.0,) * 3,
+                                   roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, source=source), s)
+        v.ingest("estimate", estimate(k, 0.1, 0.0), s)
+        v.ingest("reference", reference(k, 1.0), s)
+        sp = setpoint(k, s + 0.001, s, thrust)
+        v.ingest("setpoint", dataclasses.replace(sp, estimate_source="local_eso") if local else sp, s)
+
+
+def test_the_status_line_colours_each_slot():
+    v = VehicleModel("uav1")
+    ok_cert = CertificateShown("HOLDS", "HOLDS: …", "ok")
+    slots = lambda now, **kw: {i.slot: (i.text, i.level) for i in status_line(v, now, ok_cert, **kw)}  # noqa: E731
+    st = slots(0.0)
+    assert list(st) == list(STATUS_SLOTS) and st["source"] == ("NO DATA", "bad") and st["link"][1] == "off"
+    flying(v, 2.0)
+    for name in ("source", "estimator", "controller"):
+        v.ingest_alive(name, True)
+        v.ingest_health(health(name, 101.0, deadline_misses=0.0), 100.5)
+        v.ingest_health(health(name, 102.0, deadline_misses=0.0), 101.9)
+    st = slots(102.0)
+    assert st["source"] == ("LIVE · sim", "ok") and st["armed"] == ("flying (sim)", "info")
+    assert st["segment"] == ("hover", "info") and st["pathway"] == ("eso", "ok") and st["network"] == ("n", "ok")
+    assert st["certificate"] == ("cert HOLDS", "ok") and st["recording"] == ("no recorder", "warn")
+    assert st["link"] == ("50 Hz · 0 miss/min", "ok")
+    v.ingest_health(health("source", 103.0, deadline_misses=4.0), 102.0)
+    assert slots(102.0)["link"] == ("50 Hz · 4 miss/min", "warn")
+    v.ingest("recording", RecordingMsg(stamp_s=1.0, recording=True, flight="f", segment=0, path="p.rrd",
+                                       duration_s=12.4, size_bytes=1, dropped=0), 101.5)
+    v.ingest("telemetry", TelemetryMsg(stamp_s=1.0, connected=True, armed=True, in_air=True, flight_mode="offboard",
+                                       roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, pos_enu_m=(0.0,) * 3,
+                                       vel_enu_mps=(0.0,) * 3, battery_v=15.0, battery_remaining=0.8,
+                                       hover_thrust_norm=0.5, setpoint_age_s=0.02, failsafe=""), 101.5)
+    st = slots(102.0)
+    assert st["recording"] == ("● REC 12 s", "ok") and st["armed"] == ("ARMED · OFFBOARD · in air", "info")
+    assert slots(104.0)["armed"] == ("idle (sim)", "off"), "telemetry once, no gateway: the controller's view"
+    v.ingest_alive("px4_gateway", True)
+    assert slots(104.0)["armed"] == ("PX4 SILENT", "bad") and slots(104.0)["source"][1] == "bad"
+    v.ingest_alive("px4_gateway", False)
+    v.ingest_alive("estimator", False)
+    assert slots(102.0)["link"] == ("estimator, px4_gateway DOWN", "bad")
+    w = VehicleModel("uav2")
+    flying(w, 1.0, source="replay", local=True)
+    st = {i.slot: (i.text, i.level) for i in status_line(w, 101.0, ok_cert)}
+    assert st["source"] == ("REPLAY", "info") and st["pathway"] == ("LOCAL ESO", "bad")
+
+
+def test_the_status_line_escapes_what_came_from_the_bus():
+    from dashboard.view import status_html
+
+    page = status_html("uav1", [StatusItem("network", "<img src=x onerror=alert(1)>", "ok", 'a "quote"')])
+    assert "<img" not in page and "&lt;img" in page and "&quot;quote&quot;" in page

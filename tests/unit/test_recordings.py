@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from neso.features import DEFAULT_FEATURE_SET, ThrustLag, feature_set
+from neso.netfile import load_network
 from recordings.dataset import load_training_set, select
 from recordings.layout import channel_entity, channel_of, entity, fields_of, message_type, parse_channel_entity
 from recordings.reader import RecordingError, read_recording
 from recordings.writer import FlightWriter, segment_path
-from runtime.schema import TOPICS, EventMsg, ParamStateMsg, SetpointMsg, StateMsg
+from runtime.schema import TOPICS, EventMsg, ParamStateMsg, SetpointMsg, StateMsg, TelemetryMsg
 from services.recorder import FlightTracker, RecorderConfig
 from tests.helpers import EXAMPLE, EXAMPLES, PERIOD_S, flight_messages, write_recording
 
@@ -165,34 +166,80 @@ def _st(seq):
                     pitch_rad=0.0, yaw_rad=0.0, source="sim")
 
 
-def test_flight_starts_at_thrust_ends_after_a_second_without_and_at_a_source_restart():
+def _tel(armed, in_air):
+    return TelemetryMsg(stamp_s=1.0, connected=True, armed=armed, in_air=in_air, flight_mode="offboard", roll_rad=0.0,
+                        pitch_rad=0.0, yaw_rad=0.0, pos_enu_m=(0.0, 0.0, 1.0), vel_enu_mps=(0.0, 0.0, 0.0),
+                        battery_v=15.0, battery_remaining=0.8, hover_thrust_norm=0.5, setpoint_age_s=0.02, failsafe="")
+
+
+def test_flight_starts_after_half_a_second_of_thrust_ends_after_two_without_and_at_a_source_restart():
     tr = FlightTracker(RecorderConfig())
     assert not tr.on_message("setpoint", _sp(0, 5.0), 0.0).start, "no state seen yet"
     tr.on_message("state", _st(0), 0.0)
-    assert tr.on_message("setpoint", _sp(0, 0.0), 0.0).start == ""
-    assert tr.on_message("setpoint", _sp(1, 5.0), 0.02).start.startswith("armed")
-    assert tr.on_message("setpoint", _sp(2, 0.0), 0.04).stop == ""
-    assert tr.on_message("setpoint", _sp(60, 0.0), 1.05).stop.startswith("landed")
-    assert tr.on_message("setpoint", _sp(61, 5.0), 1.1).start
-    tr.on_message("state", _st(70), 1.2)
-    assert "restarted" in tr.on_message("state", _st(0), 1.3).stop
-    tr.on_message("setpoint", _sp(1, 5.0), 1.32)
-    assert tr.tick(1.4).stop == "" and "no state samples" in tr.tick(3.4).stop
+    assert tr.on_message("setpoint", _sp(1, 5.0), 0.3).start == "", "not yet flying for 0.5 s"
+    assert tr.on_message("setpoint", _sp(2, 5.0), 0.51).start.startswith("flying for 0.5 s: thrust commanded")
+    assert tr.on_message("setpoint", _sp(3, 0.0), 0.6).stop == ""
+    assert tr.on_message("setpoint", _sp(4, 5.0), 1.0).stop == "", "a short break is no landing"
+    tr.on_message("setpoint", _sp(5, 0.0), 1.1)
+    tr.on_message("state", _st(50), 2.9)
+    assert tr.tick(3.0).stop == "" and tr.tick(3.1).stop.startswith("landed: not flying for 2 s")
+    assert tr.on_message("setpoint", _sp(61, 5.0), 3.2).start == ""
+    assert tr.on_message("setpoint", _sp(62, 5.0), 3.7).start
+    tr.on_message("state", _st(70), 3.8)
+    assert "restarted" in tr.on_message("state", _st(0), 3.9).stop
+    tr.on_message("setpoint", _sp(1, 5.0), 3.92)
+    assert tr.tick(4.0).stop == "" and "no state samples" in tr.tick(6.0).stop
 
 
-def test_operator_stop_in_the_air_waits_for_the_next_arming_and_start_is_manual():
+def test_telemetry_decides_when_present_and_a_flapping_signal_never_makes_flights():
+    """The issue's PX4 case: the controller commands thrust, the vehicle says disarmed (10 Hz):
+    no flight at all, however long; then a real one, armed and in the air, is one flight."""
+    tr = FlightTracker(RecorderConfig())
+    tr.on_message("state", _st(0), 0.0)
+    decisions = []
+    for k in range(1500):  # 30 s at 50 Hz
+        now = k * 0.02
+        decisions.append(tr.on_message("setpoint", _sp(k, 6.0), now))
+        if k % 5 == 0:
+            decisions.append(tr.on_message("telemetry", _tel(armed=False, in_air=False), now))
+        decisions.append(tr.tick(now))
+    assert not any(d.start or d.stop for d in decisions)
+    # a vehicle whose in-air flag flickers on the ground (armed, 0.2 s in the air, 0.2 s not): still nothing
+    for k in range(200):
+        decisions.append(tr.on_message("telemetry", _tel(armed=True, in_air=(k // 2) % 2 == 0), 30.0 + 0.1 * k))
+    assert not any(d.start for d in decisions)
+    starts, stops = [], []
+    for k in range(300):  # 30 s: 10 s flying, 20 s landed and disarmed
+        flying = k < 100
+        d = tr.on_message("telemetry", _tel(armed=flying, in_air=flying), 60.0 + 0.1 * k)
+        starts += [d.start] if d.start else []
+        stops += [d.stop] if d.stop else []
+    assert starts == ["flying for 0.5 s: armed and in the air (telemetry)"]
+    assert stops == ["landed: not flying for 2 s (disarmed, on the ground (telemetry))"]
+    # telemetry gone for longer than its timeout: the controller's setpoints decide again
+    assert tr.on_message("setpoint", _sp(2000, 6.0), 100.0).start == ""
+    assert tr.on_message("setpoint", _sp(2001, 6.0), 100.6).start.endswith("thrust commanded (controller)")
+
+
+def test_operator_stop_in_the_air_waits_for_a_landing_and_start_is_manual():
     tr = FlightTracker(RecorderConfig())
     tr.on_message("state", _st(0), 0.0)
     tr.on_message("setpoint", _sp(0, 5.0), 0.0)
+    assert tr.on_message("setpoint", _sp(1, 5.0), 0.6).start
     assert tr.command("stop")[0].stop == "operator stop"
-    assert not tr.on_message("setpoint", _sp(1, 5.0), 0.02).start, "still in the air: no automatic restart"
-    tr.on_message("setpoint", _sp(2, 0.0), 0.04)
-    assert tr.on_message("setpoint", _sp(3, 5.0), 0.06).start
+    assert not tr.on_message("setpoint", _sp(2, 5.0), 2.0).start, "still in the air: no automatic restart"
+    tr.on_message("setpoint", _sp(3, 0.0), 2.1)
+    tr.on_message("state", _st(50), 4.0)
+    assert not tr.tick(4.2).start
+    tr.on_message("setpoint", _sp(4, 5.0), 4.3)
+    assert tr.on_message("setpoint", _sp(5, 5.0), 4.9).start
     tr2 = FlightTracker(RecorderConfig(auto=False))
     tr2.on_message("state", _st(0), 0.0)
     assert not tr2.on_message("setpoint", _sp(0, 5.0), 0.0).start
+    assert not tr2.on_message("setpoint", _sp(1, 5.0), 1.0).start
     assert tr2.command("start")[0].start == "operator start"
     assert tr2.on_message("setpoint", _sp(70, 0.0), 5.0).stop == "", "a manual recording ends by command only"
+    assert tr2.tick(9.0).stop == ""
     with pytest.raises(ValueError):
         tr2.command("pause")
 
@@ -244,6 +291,18 @@ def test_what_if_reproduces_the_flown_estimate_and_tells_another_one_apart():
     assert other.flown_err_rms_mps2 == same.flown_err_rms_mps2 and other.whatif_err_rms_mps2 != same.whatif_err_rms_mps2
     with pytest.raises(ValueError, match="unknown what-if setting"):
         WhatIf.parse("gain=3")
+    # the network named is the one that ran: the one trained for an L_N (base-x0.5's, typed with 4 s.f.),
+    # or the default network scaled to one no file was trained for
+    half = load_network("networks/base-x0.5.safetensors").lipschitz_bound_physical()
+    trained = what_if(rec, WhatIf.parse(f"pathway=neural_eso,L_N={half:.4g}"))
+    assert trained.config["network"] == f"base-x0.5@L{half:.4g} (file networks/base-x0.5.safetensors)"
+    scaled = what_if(rec, WhatIf.parse("pathway=neural_eso,L_N=0.3"))
+    assert scaled.config["network"] == "base@L0.3 (scaled networks/base.safetensors)"
+    assert "unused" in what_if(rec, WhatIf.parse("L_N=0.5")).config["network"], "flown under eso"
+    for bad, why in (("L_N=-1", "positive"), ("L_N=nan", "positive"), ("omega_o=x", "not a number"),
+                     ("pathway=fast", "not one of"), ("network=no/such.safetensors", "no such file")):
+        with pytest.raises(ValueError, match=why):
+            WhatIf.parse(bad)
 
 
 def test_bus_schedule_is_in_flight_order_and_paced_by_sample_time():
@@ -327,3 +386,27 @@ def test_a_compacted_file_that_split_a_channel_by_component_reads_back_whole(tmp
     events = read_recording(tmp_path / "events.rrd").channel("event/estimator")
     assert events.columns["text"] == texts and list(events.columns["level"]) == ["warning"] * 4
     assert list(events.columns["stamp_s"]) == [100.0, 101.0, 102.0, 103.0]
+
+
+def test_what_the_viewer_plots_z_alone_named_the_loop_latency_and_the_trail(tmp_path):
+    """The viewer's legends list no hidden x/y series, the latency plot has a value per sample, the
+    3D view has the positions its trail is drawn from."""
+    from rerun.chunk import RrdReader
+
+    msgs = flight_messages(60)
+    write_recording(tmp_path / "f.rrd", msgs)
+    columns: dict[str, list] = {}
+    for chunk in RrdReader(str(tmp_path / "f.rrd")).stream():
+        batch = chunk.to_record_batch()
+        for name in ("Scalars:scalars", "SeriesLines:names", "Points3D:positions"):
+            if name in batch.schema.names:
+                columns.setdefault(f"{chunk.entity_path}|{name}", []).extend(batch.column(name).to_pylist())
+    assert columns["/neso/uav1/estimate/f_hat_mps2|SeriesLines:names"] == [["f̂ z"]]
+    f_hat = columns["/neso/uav1/estimate/f_hat_mps2|Scalars:scalars"]
+    assert f_hat == [[m.f_hat_mps2[2]] for c, m in msgs if c == "estimate"], "one series: z"
+    assert columns["/neso/uav1/state/pos_enu_m|SeriesLines:names"] == [["state z"]]
+    latency = [v for (v,) in columns["/neso/uav1/setpoint/loop_latency_ms|Scalars:scalars"]]
+    assert latency == pytest.approx([(m.stamp_s - m.state_stamp_s) * 1e3 for c, m in msgs if c == "setpoint"])
+    trail = columns["/neso/uav1/state/point|Points3D:positions"]
+    states = [m for c, m in msgs if c == "state"]
+    assert len(trail) == 60 and trail[5][0] == pytest.approx(states[5].pos_enu_m), "a position per sample"

@@ -98,6 +98,7 @@ def test_controller_pairs_state_and_estimate_in_either_order():
     assert core.on_state(state(0), 0.0) == []
     (sp, ref), = core.on_estimate(estimate(0), 0.001)
     assert sp.seq == 0 and sp.estimate_source == "estimator" and ref.segment == "hover"
+    assert sp.estimate_stamp_s == 1.0, "the estimate's stamp rides along: a late setpoint tells who was late"
     assert core.on_estimate(estimate(1), 0.02) == []
     (sp, _), = core.on_state(state(1), 0.021)
     assert sp.seq == 1
@@ -119,10 +120,12 @@ def test_controller_falls_back_to_its_local_eso_when_the_estimate_is_stale_and_r
             out += core.check_stale(t + step)
         if out and fallback_at is None:
             fallback_at = k
-            assert out[0][0].estimate_source == "local_eso"
+            assert out[0][0].estimate_source == "local_eso" and out[0][0].estimate_stamp_s == 0.0
         t += 0.02
     assert fallback_at is not None and fallback_at <= 13, "within 3 periods of the first missing estimate"
-    assert any(level == "warning" and "local ESO" in text for level, text in core.events)
+    assert any(level == "warning" and "local ESO" in text and "the estimator's newest answer was for sample 9" in text
+               for level, text in core.events)
+    assert core.fallbacks == 1
     # a restarted estimator that is not warm yet is not used
     out = core.on_state(state(20), t)
     assert out[0][0].estimate_source == "local_eso"

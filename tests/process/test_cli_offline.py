@@ -1,0 +1,48 @@
+"""The `neso` commands a new user runs first, as real subprocesses with no bus running: offline
+training into the registry, the networks listed (shipped and trained), a refused what-if."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from services.estimator import DEFAULT_NETWORK
+from tests.busutil import REPO, free_port
+from tests.helpers import flight_messages, write_recording
+
+
+def neso_run(*args: str, timeout_s: float = 180.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cli.main", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+def test_train_with_no_bus_trains_here_stores_in_the_registry_and_networks_list_shows_both(tmp_path):
+    rrd = tmp_path / "flight.rrd"
+    write_recording(rrd, flight_messages(300, pathway="neural_eso"))
+    registry = tmp_path / "registry"
+    nobody = f"tcp/127.0.0.1:{free_port()}"  # no hub listens there
+    out = neso_run("train", str(rrd), "--no-offer", "--epochs", "3", "--registry", str(registry), "--connect", nobody)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "no trainer of uav1 on the bus: training here, offline" in out.stdout
+    assert "trained offline: uav1-tdr-" in out.stdout and "Traceback" not in out.stderr
+    listed = neso_run("networks", "list", "--registry", str(registry), "--json")
+    rows = json.loads(listed.stdout)
+    shipped = [r for r in rows if r["where"] == "shipped"]
+    trained = [r for r in rows if r["where"] == "registry"]
+    on_disk = sorted((Path(REPO) / "networks").rglob("*.safetensors"))
+    assert sorted(Path(REPO, r["path"]).resolve() for r in shipped) == [p.resolve() for p in on_disk]
+    (default,) = [r for r in shipped if r["flown_by_default"]]
+    assert Path(REPO, default["path"]).resolve() == Path(REPO, DEFAULT_NETWORK).resolve()
+    assert len(trained) == 1 and trained[0]["parent"] == default["id"] and trained[0]["label"] == "tdr"
+    table = neso_run("networks", "list", "--registry", str(registry)).stdout
+    assert f"shipped  {default['id']} *" in table and "registry " in table
+
+    refused = neso_run("train", str(rrd), "--offline", "--registry", str(registry))  # offer asked, offline
+    assert refused.returncode == 1 and refused.stdout.count("\n") == 1 and "--no-offer" in refused.stdout
+
+
+def test_what_if_with_a_negative_bound_is_refused_in_one_line_without_a_warning():
+    out = neso_run("replay", "recordings/examples/nominal-landing-eso.rrd", "--what-if", "L_N=-1")
+    assert out.returncode == 1 and out.stdout == "error: L_N=-1: must be a positive number\n", out.stdout
+    assert out.stderr == "", out.stderr  # numpy's ComplexWarning leaked here
