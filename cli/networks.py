@@ -24,9 +24,9 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
     """One row per network file under ``folder`` (the registry's excepted), shaped like a registry
     row, ``where: shipped``; the small-gain verdict at the trainer's z gains (the registry's
     convention), at the network's certified physical bound."""
+    from neso.certificate import flight_certificate
     from neso.netfile import NetworkFileError, load_network
     from services.estimator import DEFAULT_NETWORK
-    from services.registry import small_gain_certificate
     from services.trainer import TrainerConfig
 
     gains = TrainerConfig()
@@ -41,13 +41,13 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
             continue
         meta = net.metadata
         certified = net.certified_lipschitz_physical()
-        cert = small_gain_certificate(certified, kp=gains.kp, kd=gains.kd, omega_o=gains.omega_o_rps)
+        cert = flight_certificate(certified, kp=gains.kp, kd=gains.kd, omega_o=gains.omega_o_rps)
         val = meta.get("val_loss")
         rows.append({"where": "shipped", "id": meta.get("id", path.stem), "vehicle": meta.get("vehicle", ""),
                      "label": meta.get("training_data", "").split(":")[0], "parent": "" if meta.get("warm_start", "no") == "no" else meta["warm_start"],
                      "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
                      "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
-                     "val_loss": float(val) if val else None, "certificate_holds": cert["holds"],
+                     "val_loss": float(val) if val else None, "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
                      "flown_by_default": path.resolve() == Path(DEFAULT_NETWORK).resolve(), "path": str(path)})
     return rows
 
@@ -63,7 +63,7 @@ def run(args) -> int:
     if not rows:
         print(f"no networks in {args.shipped} or {args.registry}")
         return 0
-    print(f"{'where':8} {'id':44} {'label':12} {'L_N norm':>8} {'L_N phys':>9} {'val loss':>9} {'small-gain':>10}  "
+    print(f"{'where':8} {'id':44} {'label':12} {'L_N norm':>8} {'certified':>9} {'val loss':>9} {'small-gain':>10}  "
           "parent / trained on")
     for r in rows:
         if "error" in r:
@@ -73,11 +73,11 @@ def run(args) -> int:
         source = r.get("training_data") or ", ".join(p.rsplit("/", 1)[-1] for p in r.get("recordings", []))
         mark = " *" if r.get("flown_by_default") else ""
         print(f"{r['where']:8} {r['id'] + mark:44} {r['label'][:12]:12} {_num(r['lipschitz_norm'], '8.3g')} "
-              f"{_num(r['lipschitz_phys'], '9.4g')} {_num(r['val_loss'], '9.4g')} {cert:>10}  "
+              f"{_num(r.get('certified_phys'), '9.4g')} {_num(r['val_loss'], '9.4g')} {cert:>10}  "
               f"{r['parent'] or '—'} / {source or '—'}")
     if not any(r["where"] == "registry" for r in rows):
         print(f"(registry {args.registry}: empty — `neso train` stores there)")
     if any(r.get("flown_by_default") for r in rows):
-        print("* flown by the estimator by default (--network); small-gain: the tight certificate at the trainer's "
+        print("* flown by the estimator by default (--network); certified: the physical L_N ((m/s²)/unit z) the network provably meets; small-gain: the tight certificate at the trainer's "
               "z gains for the network's certified physical L_N")
     return 0

@@ -43,7 +43,8 @@ class Entry:
         i = self.info
         return {"id": self.id, "vehicle": self.vehicle, "label": i.get("label", ""), "parent": i.get("parent", ""),
                 "created": i.get("created", ""), "lipschitz_norm": i.get("lipschitz_norm"),
-                "lipschitz_phys": i.get("lipschitz_phys"), "val_loss": i.get("val_loss"),
+                "lipschitz_phys": i.get("lipschitz_phys"), "certified_phys": i.get("certified_phys"),
+                "val_loss": i.get("val_loss"),
                 "certificate_holds": (i.get("certificate") or {}).get("holds"),
                 "feature_set": i.get("feature_set", ""), "predicted_change": (i.get("predicted") or {}).get("change"),
                 "recordings": i.get("recordings", []), "path": self.path}

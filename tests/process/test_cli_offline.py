@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from neso.learning import recipe_of
+from neso.netfile import load_network
 from services.estimator import DEFAULT_NETWORK
 from tests.busutil import REPO, free_port
 from tests.helpers import flight_messages, write_recording
@@ -25,7 +27,8 @@ def test_train_with_no_bus_trains_here_stores_in_the_registry_and_networks_list_
     out = neso_run("train", str(rrd), "--no-offer", "--epochs", "3", "--registry", str(registry), "--connect", nobody)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "no trainer of uav1 on the bus: training here, offline" in out.stdout
-    assert "trained offline: uav1-tdr-" in out.stdout and "Traceback" not in out.stderr
+    tdr_label = recipe_of(load_network(Path(REPO, DEFAULT_NETWORK)).metadata).tdr_label  # the recipe's TDR label
+    assert f"trained offline: uav1-{tdr_label}-" in out.stdout and "Traceback" not in out.stderr
     listed = neso_run("networks", "list", "--registry", str(registry), "--json")
     rows = json.loads(listed.stdout)
     shipped = [r for r in rows if r["where"] == "shipped"]
@@ -34,7 +37,7 @@ def test_train_with_no_bus_trains_here_stores_in_the_registry_and_networks_list_
     assert sorted(Path(REPO, r["path"]).resolve() for r in shipped) == [p.resolve() for p in on_disk]
     (default,) = [r for r in shipped if r["flown_by_default"]]
     assert Path(REPO, default["path"]).resolve() == Path(REPO, DEFAULT_NETWORK).resolve()
-    assert len(trained) == 1 and trained[0]["parent"] == default["id"] and trained[0]["label"] == "tdr"
+    assert len(trained) == 1 and trained[0]["parent"] == default["id"] and trained[0]["label"] == tdr_label
     table = neso_run("networks", "list", "--registry", str(registry)).stdout
     assert f"shipped  {default['id']} *" in table and "registry " in table
 
