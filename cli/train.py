@@ -112,8 +112,16 @@ def offline(args) -> int:
     return 0
 
 
-def _trainer_alive(session, keys, timeout_s: float = 1.0) -> bool:
-    return bool(list(session.liveliness().get(keys.alive("trainer"), timeout=timeout_s)))
+def _trainer_alive(session, keys, timeout_s: float = 2.0) -> bool:
+    """Whether the vehicle's trainer holds its liveliness token. Asked again until ``timeout_s``: a
+    session just opened may not have reached the hub yet, and an early answer is empty."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if list(session.liveliness().get(keys.alive("trainer"), timeout=0.25)):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)
 
 
 def run(args) -> int:
