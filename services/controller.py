@@ -222,6 +222,7 @@ class ControllerCore:
         self.local.reset(meas, self._applied.thrust_n)
         self._estimates.clear()
         self._last_stepped = -1
+        self._newest_estimate = None  # a new flight's samples count from 0 again
         self.mission = Mission(self.config.missions)
         name = self.config.mission
         if name != "idle":
