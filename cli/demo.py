@@ -11,6 +11,13 @@
 4. promote it in flight (hovering at the lemniscate's end point), then fly the lemniscate again while
    the estimator's canary compares the tracking with the first run.
 
+The two lemniscates are paired: before each, the simulated world restarts (the source's ``scenario``
+command: same scenario, same seed, so the same gust and mocap-noise streams) and the lemniscate is
+commanded once the world's clock reaches ``PAIRED_START_T_S``. Without that, the second run met a
+minute-later stretch of the same turbulence, and the same network's two runs differed by −10 % to
++24 % (README, "The TDR loop, live"); paired, the difference is the network's. When the candidate is
+not offered, the second run flies the same network again: the pairing's own residual.
+
 Reported: the z RMSE of the cycles before and after the swap (truth − reference, the ramps left
 out), missed deadlines (states without a setpoint from the estimator's f̂), the commanded-force
 step at the swap beside the normal steps, the f̂ step at the swap, and the stage times from the
@@ -20,12 +27,13 @@ end of the recording to the promoted network. The same function backs the proces
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -33,6 +41,8 @@ from neso.control import ControlConfig
 from neso.trajectories import Lemniscate
 
 RAMP_S = Lemniscate().ramp_s  # the cycles start after it
+SCENARIO = "lemniscate_near_ground"
+PAIRED_START_T_S = 3.0  # world clock (s) at which each paired lemniscate is commanded
 FORCE_STEP_LIMIT_N = ControlConfig().force_step_limit_n  # the controller's, at neso up's default 50 Hz
 
 
@@ -45,6 +55,9 @@ def add_parser(subparsers) -> None:
     t.add_argument("--epochs", type=int, default=100)
     t.add_argument("--dashboard-port", type=int, default=8080, help="watch it at http://127.0.0.1:PORT (0: no dashboard)")
     t.add_argument("--json", default=None, help="write the report here as JSON")
+    t.add_argument("--seed", type=int, default=1, help="the simulated world's seed (gusts, mocap noise)")
+    t.add_argument("--force-offer", action="store_true",
+                   help="offer and promote the candidate even if predicted to fly worse (to see what it does)")
 
 
 @dataclass
@@ -78,6 +91,7 @@ class TdrReport:
     predicted: dict = field(default_factory=dict)  # the trainer's closed-loop prediction (RMSE cm, change)
     certificate: dict = field(default_factory=dict)  # the candidate's, for the gains flown
     canary: str = ""  # the canary's last word after the second run
+    lemniscate_start_t_s: list = field(default_factory=list)  # world clock at each run's first lemniscate sample
 
     def lines(self) -> list[str]:
         st = ", ".join(f"{k} {v:.2f}" for k, v in self.stage_s.items())
@@ -100,6 +114,8 @@ class TdrReport:
             f"({self.predicted.get('change', float('nan')) * 100:+.0f} %); offered: {self.offered}; "
             f"{self.certificate.get('text', 'certificate unknown')}",
             f"canary: {self.canary or 'no verdict'}",
+            "paired worlds (same seed): lemniscates began at world t = "
+            + ", ".join(f"{t:.2f}" for t in self.lemniscate_start_t_s) + " s",
         ]
 
 
@@ -125,45 +141,76 @@ def lemniscate_runs(references) -> list[tuple[int, int]]:
     return runs
 
 
-def z_rmse_cm(references, truths, run: tuple[int, int]) -> tuple[float, int]:
+@dataclass(frozen=True)
+class Run:
+    """One lemniscate flown in its own world: the world's first state stamp and the next world's
+    (``time.monotonic()`` s; inf while none), the run's first and last ``seq``, and the world clock
+    (s) at its first lemniscate sample."""
+
+    since_s: float
+    until_s: float
+    first: int
+    last: int
+    start_t_s: float
+
+    def messages(self, msgs, lo: int | None = None, hi: int | None = None) -> list:
+        """Those of ``msgs`` of this run's world with ``lo <= seq <= hi`` (default: the run's)."""
+        lo = self.first if lo is None else lo
+        hi = self.last if hi is None else hi
+        return [m for m in msgs if self.since_s <= m.stamp_s < self.until_s and lo <= m.seq <= hi]
+
+
+def z_rmse_cm(references, truths, run: Run) -> tuple[float, int]:
     """z RMSE (cm) of truth against reference over one lemniscate run, its ramp left out."""
-    refs = {m.seq: m for m in references if run[0] <= m.seq <= run[1]}
-    truth = {m.seq: m.pos_enu_m[2] for m in truths if run[0] <= m.seq <= run[1]}
-    t0 = refs[run[0]].t_s
+    refs = {m.seq: m for m in run.messages(references)}
+    truth = {m.seq: m.pos_enu_m[2] for m in run.messages(truths)}
+    t0 = refs[run.first].t_s
     err = [truth[k] - refs[k].pos_enu_m[2] for k in sorted(set(refs) & set(truth)) if refs[k].t_s >= t0 + RAMP_S]
     return (float(np.sqrt(np.mean(np.square(err)))) * 100 if err else float("nan")), len(err)
 
 
-def analyse(probe, first_run, second_run, swap_seq: int, report: TdrReport) -> TdrReport:
-    """Fill the flight figures of ``report`` from what ``probe`` (a :class:`runtime.probe.Probe`) saw."""
+def _steps(values: dict) -> dict:
+    """seq → |value(seq) − value(seq − 1)| (largest component) where both samples are there."""
+    return {k: float(np.max(np.abs(np.asarray(values[k]) - np.asarray(values[k - 1])))) for k in values
+            if k - 1 in values}
+
+
+def analyse(probe, first_run: Run, second_run: Run, swap_seq: int, report: TdrReport) -> TdrReport:
+    """Fill the flight figures of ``report`` from what ``probe`` (a :class:`runtime.probe.Probe`) saw:
+    the first world from its lemniscate to its end (the training, the shadow and the swap happen
+    there), the second world's lemniscate."""
     refs, truths = probe.get("reference"), probe.get("truth")
     report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
     report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
     report.improvement = 1.0 - report.rmse_after_cm / report.rmse_before_cm
-    lo, hi = first_run[0], second_run[1]
-    states = {m.seq for m in probe.get("state") if lo <= m.seq <= hi}
-    good = {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi and m.estimate_source == "estimator"}
-    missed = states - good
-    report.states_without_setpoint = len(states - {m.seq for m in probe.get("setpoint") if lo <= m.seq <= hi})
-    report.swap_answered = swap_seq in good and swap_seq + 1 in good
-    report.states, report.missed_setpoints = len(states), len(missed)
-    report.missed_near_swap = sum(1 for k in missed if abs(k - swap_seq) <= 25)
+    spans = {"first": (first_run, first_run.first, 2**62), "second": (second_run, second_run.first, second_run.last)}
+    missed, steps, fsteps = {}, {}, {}
+    for name, (run, lo, hi) in spans.items():
+        states = {m.seq for m in run.messages(probe.get("state"), lo, hi)}
+        sps = {m.seq: m for m in run.messages(probe.get("setpoint"), lo, hi)}
+        good = {k for k, m in sps.items() if m.estimate_source == "estimator"}
+        missed[name] = states - good
+        report.states += len(states)
+        report.states_without_setpoint += len(states - set(sps))
+        steps[name] = _steps({k: _force(m) for k, m in sps.items()})
+        fsteps[name] = _steps({m.seq: m.f_hat_mps2[2] for m in run.messages(probe.get("estimate"), lo, hi)})
+        if name == "first":
+            report.swap_answered = swap_seq in good and swap_seq + 1 in good
+    report.missed_setpoints = len(missed["first"]) + len(missed["second"])
+    report.missed_near_swap = sum(1 for k in missed["first"] if abs(k - swap_seq) <= 25)
     report.missed_by_phase = {
-        "first lemniscate": sum(1 for k in missed if k <= first_run[1]),
-        "between (training, shadow, swap)": sum(1 for k in missed if first_run[1] < k < second_run[0]),
-        "second lemniscate": sum(1 for k in missed if k >= second_run[0])}
-    sps = {m.seq: m for m in probe.get("setpoint") if lo <= m.seq <= hi}
-    steps = {k: float(np.max(np.abs(_force(sps[k]) - _force(sps[k - 1])))) for k in sps if k - 1 in sps}
+        "first lemniscate": sum(1 for k in missed["first"] if k <= first_run.last),
+        "between (training, shadow, swap)": sum(1 for k in missed["first"] if k > first_run.last),
+        "second lemniscate": len(missed["second"])}
     report.swap_seq = swap_seq
-    near = [v for k, v in steps.items() if abs(k - swap_seq) <= 5]
-    normal = [v for k, v in steps.items() if abs(k - swap_seq) > 5]
+    near = [v for k, v in steps["first"].items() if abs(k - swap_seq) <= 5]
+    normal = [v for k, v in steps["first"].items() if abs(k - swap_seq) > 5] + list(steps["second"].values())
     report.force_step_at_swap_n = max(near) if near else float("nan")
     report.force_step_p50_n = float(np.percentile(normal, 50))
     report.force_step_p99_n = float(np.percentile(normal, 99))
-    est = {m.seq: m.f_hat_mps2[2] for m in probe.get("estimate") if lo <= m.seq <= hi}
-    fsteps = {k: abs(est[k] - est[k - 1]) for k in est if k - 1 in est}
-    report.f_hat_step_at_swap_mps2 = fsteps.get(swap_seq, float("nan"))
-    report.f_hat_step_p99_mps2 = float(np.percentile([v for k, v in fsteps.items() if abs(k - swap_seq) > 5], 99))
+    report.f_hat_step_at_swap_mps2 = fsteps["first"].get(swap_seq, float("nan"))
+    report.f_hat_step_p99_mps2 = float(np.percentile(
+        [v for k, v in fsteps["first"].items() if abs(k - swap_seq) > 5] + list(fsteps["second"].values()), 99))
     return report
 
 
@@ -192,10 +239,12 @@ class _Events:
 
 
 def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
-                 fly_after: bool = True, dashboard_port: int | None = None) -> TdrReport:
+                 fly_after: bool = True, dashboard_port: int | None = None, seed: int = 1,
+                 force_offer: bool = False) -> TdrReport:
     """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
     ``fly_after`` False: stop once the new network flies (the bench: stage times only).
-    ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard)."""
+    ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard).
+    ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse."""
     from runtime.bus import BusConfig, open_session
     from runtime.client import command
     from runtime.launcher import interrupt
@@ -205,7 +254,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     keys = Keys("uav1")
     rec_dir, registry = os.path.join(workdir, "recordings"), os.path.join(workdir, "registry")
     argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
-            "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry]
+            "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry, "--seed", str(seed)]
     argv += ["--no-dashboard"] if dashboard_port is None else ["--dashboard-port", str(dashboard_port)]
     up_log = open(os.path.join(workdir, "neso-up.log"), "w")
     up = subprocess.Popen(argv, stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True,
@@ -219,13 +268,14 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         if on_up is not None:
             on_up(up)
 
-        def cmd(service, name, timeout_s=5.0, **args):
-            return command(session, keys, service, name, args, timeout_s=timeout_s)
+        def cmd(service, command_name, timeout_s=5.0, **args):
+            return command(session, keys, service, command_name, args, timeout_s=timeout_s)
 
         probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
         log("flying the lemniscate under Neural-ESO with the base network, recording")
-        first_run = fly_lemniscate(probe, cmd)
-        path = probe.wait_for("recording", lambda m: m.recording and m.path, 5.0).path
+        first_run = fly_lemniscate(probe, cmd, restart_world(probe, cmd))
+        report.lemniscate_start_t_s.append(first_run.start_t_s)
+        path = probe.wait_for("recording", lambda m: m.recording and m.path and m.stamp_s > first_run.since_s, 5.0).path
         t_stop = time.monotonic()
         reply = cmd("recorder", "stop")
         assert reply.ok, reply.message
@@ -233,7 +283,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         report.recording = path
         log(f"recorded {path}; training TDR from it")
         t_train = time.monotonic()
-        reply = cmd("trainer", "train", recordings=[path], epochs=epochs)
+        reply = cmd("trainer", "train", recordings=[path], epochs=epochs, force_offer=force_offer)
         assert reply.ok, reply.message
         job = reply.message.split()[1]
         done = events.wait(lambda t: t.startswith(f"job {job} done") or t.startswith(f"job {job} failed"), 300.0)
@@ -245,7 +295,9 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         if not report.offered:  # predicted to fly worse (or refused): the base network flies on
             log(f"candidate not offered: {done}")
             if fly_after:
-                second_run = fly_lemniscate(probe, cmd)
+                second_run = fly_lemniscate(probe, cmd, restart_world(probe, cmd))
+                first_run = replace(first_run, until_s=second_run.since_s)
+                report.lemniscate_start_t_s.append(second_run.start_t_s)
                 refs, truths = probe.get("reference"), probe.get("truth")
                 report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
                 report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
@@ -263,7 +315,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         report.active_error_rms_mps2 = shadow.candidate.get("active_error_rms_mps2", float("nan"))
         before = probe.get("estimate")[-1].seq
         t_promote = time.monotonic()
-        reply = cmd("estimator", "promote")
+        reply = cmd("estimator", "promote", force=force_offer)
         assert reply.ok, reply.message
         probe.wait_for("estimate", lambda m: m.network_id == cand["id"] and m.seq > before, 5.0)
         t_promoted = time.monotonic()
@@ -277,12 +329,14 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
             events.close()
             probe.close()
             return report
-        log("promoted; flying the lemniscate again")
+        log("promoted; flying the lemniscate again, in the same world as the first")
+        since = restart_world(probe, cmd)
         cmd("recorder", "start")
-        second_run = fly_lemniscate(probe, cmd)
-        runs = [first_run, second_run]
+        second_run = fly_lemniscate(probe, cmd, since)
+        first_run = replace(first_run, until_s=second_run.since_s)
+        report.lemniscate_start_t_s.append(second_run.start_t_s)
         report.canary = probe.get("network")[-1].canary.get("last", "")
-        analyse(probe, runs[0], runs[1], swap_seq, report)
+        analyse(probe, first_run, second_run, swap_seq, report)
         events.close()
         probe.close()
         return report
@@ -305,17 +359,29 @@ def _registry_figures(registry: str, report: TdrReport) -> None:
         report.certificate = info.get("certificate", {})
 
 
-def fly_lemniscate(probe, cmd) -> tuple[int, int]:
-    """Command the lemniscate mission and wait until it is over: its (first seq, last seq)."""
-    after = probe.get("reference")[-1].seq
+def restart_world(probe, cmd) -> float:
+    """Restart the simulated world (same scenario, same seed); the stamp of its first state."""
+    t_cmd = time.monotonic()
+    reply = cmd("source", "scenario", name=SCENARIO)
+    assert reply.ok, reply.message
+    first = probe.wait_for("state", lambda m: m.stamp_s > t_cmd and m.seq < 50, 10.0)
+    return min(m.stamp_s for m in probe.get("state") if m.stamp_s > t_cmd and m.seq <= first.seq)
+
+
+def fly_lemniscate(probe, cmd, since_s: float) -> Run:
+    """In the world that began at ``since_s``: command the lemniscate once its clock reaches
+    ``PAIRED_START_T_S`` and wait until it is over."""
+    probe.wait_for("state", lambda m: m.stamp_s >= since_s and m.t_s >= PAIRED_START_T_S, 30.0)
     reply = cmd("controller", "lemniscate")
     assert reply.ok, reply.message
-    probe.wait_for("reference", lambda m: m.segment == "lemniscate" and m.seq > after, 30.0)
-    start = min(m.seq for m in probe.get("reference") if m.segment == "lemniscate" and m.seq > after)
-    probe.wait_for("reference", lambda m: m.segment != "lemniscate" and m.seq > start, 90.0)
-    runs = [r for r in lemniscate_runs(probe.get("reference")) if r[0] >= start]
-    assert len(runs) == 1, f"one lemniscate run expected after sample {start}: {runs}"
-    return runs[0]
+    ours = lambda m: m.stamp_s >= since_s  # noqa: E731
+    first = probe.wait_for("reference", lambda m: ours(m) and m.segment == "lemniscate", 30.0)
+    probe.wait_for("reference", lambda m: ours(m) and m.segment != "lemniscate" and m.seq > first.seq, 90.0)
+    refs = [m for m in probe.get("reference") if ours(m)]
+    runs = lemniscate_runs(refs)
+    assert len(runs) == 1, f"one lemniscate run expected in the world that began at {since_s}: {runs}"
+    start_t_s = next(m.t_s for m in refs if m.seq == runs[0][0])
+    return Run(since_s, math.inf, runs[0][0], runs[0][1], start_t_s)
 
 
 def _stage_times(summary: str) -> dict:
@@ -338,7 +404,8 @@ def run(args) -> int:
     hub = args.hub or f"tcp/127.0.0.1:{free_loopback_port()}"
     workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
     os.makedirs(workdir, exist_ok=True)
-    report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs, dashboard_port=args.dashboard_port or None)
+    report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs, dashboard_port=args.dashboard_port or None,
+                          seed=args.seed, force_offer=args.force_offer)
     print("\n".join(report.lines()))
     print(f"recordings, registry and the neso up log are in {workdir}")
     if args.json:
