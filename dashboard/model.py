@@ -37,6 +37,7 @@ COLUMNS = ("t", "x", "y", "z", "ref_x", "ref_y", "ref_z", "f_n_z", "df_hat_z", "
            "roll", "pitch", "roll_sp", "pitch_sp")
 _COL = {name: i for i, name in enumerate(COLUMNS)}
 RING_ROWS = 8192  # 164 s at 50 Hz, 16 s at 500 Hz
+AHEAD_SAMPLES = 50  # a sample's estimate/setpoint/reference/truth may come before its state, by less than this
 STALE_HEALTH_S = 3.0  # a service whose last health report is older than this is shown stale
 COUNTER_WINDOW_S = 60.0  # misses and fall-backs are counted over the last minute
 EVENT_GROUPS = 40  # distinct event messages kept
@@ -156,9 +157,17 @@ class VehicleModel:
             self.setpoint_stamps_s.clear()
             self.last_seq = -1
 
+    def _of_an_older_flight(self, seq: int) -> bool:
+        """A sample's non-state message far ahead of every state of this flight: it answers a state
+        of the flight before a restart (arriving late), and its row would hold that flight's clock."""
+        return seq > self.last_seq + AHEAD_SAMPLES
+
     def ingest(self, topic: str, msg, received_s: float) -> None:
         self.latest[topic] = msg
         self.received[topic] = received_s
+        if not isinstance(msg, StateMsg) and isinstance(getattr(msg, "seq", None), int) and \
+                self._of_an_older_flight(msg.seq):
+            return
         if isinstance(msg, StateMsg):
             self._new_flight_if(msg.seq)
             self.last_seq = max(self.last_seq, msg.seq)

@@ -79,6 +79,26 @@ def test_a_new_flight_clears_the_old_one():
     assert v.flights == 1 and len(v.window()["t"]) == 1 and len(v.trail) == 1
 
 
+def test_late_messages_of_the_flight_before_a_restart_do_not_hide_the_new_one():
+    """The world restarted at sample 3000 (t = 60 s); the old flight's last estimate and reference
+    arrive after the new flight's first states. Kept, their rows' clock (60 s) would leave the new
+    flight (t < 1 s) outside the 10 s window: plots blank, tracking RMS unknown, for 164 s."""
+    v = VehicleModel("uav1")
+    for k in range(2990, 3000):
+        v.ingest("state", state(k, 1.0), 0.0)
+    for k in range(40):
+        v.ingest("state", state(k, 0.3), 0.0)
+        v.ingest("reference", reference(k, 0.25), 0.0)
+        if k == 2:
+            v.ingest("estimate", estimate(3000, 0.1, 0.0), 0.0)
+            v.ingest("reference", reference(3000, 1.0), 0.0)
+    w = v.window()
+    assert v.flights == 1 and len(w["t"]) == 40 and np.nanmax(w["t"]) == pytest.approx(0.78)
+    assert v.tracking_rms_m()[0] == pytest.approx(0.05)
+    v.ingest("estimate", estimate(41, 0.1, 0.0), 0.0)  # one sample ahead of its state: kept
+    assert len(v.window()["t"]) == 41
+
+
 def test_the_certificate_shown_is_the_estimators_verdict_not_the_pages():
     from neso.certificate import flight_certificate
 
