@@ -98,7 +98,8 @@ class TdrReport:
         return [
             f"z RMSE, lemniscate cycles before the swap (base network): {self.rmse_before_cm:.2f} cm "
             f"({self.cycles_before_samples} samples)",
-            f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm "
+            f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm " if self.offered
+            else f"z RMSE, the lemniscate again (base network: {self.network_id} not offered): {self.rmse_after_cm:.2f} cm "
             f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
             f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.states_without_setpoint} without "
             f"any setpoint, the rest flown on the controller's local ESO; {self.missed_near_swap} within 0.5 s of the "
