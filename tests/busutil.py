@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 from contextlib import contextmanager
 
 from runtime.bus import BusConfig, hub_config, open_session
@@ -62,6 +63,53 @@ def neso(*args: str, **kwargs) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "cli.main", *args], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"), **kwargs)
+
+
+class NesoUp:
+    """``neso up ARGS`` as a subprocess (its output collected by a thread into ``output``) and a
+    session ``s`` on its bus (``bus``: the hub it listens on, as a peer or an identity) with a
+    :class:`runtime.probe.Probe` of ``topics``. :meth:`close` ends both, removes ``workdir`` (a
+    folder the flight owns, if given) and returns the output."""
+
+    def __init__(self, *args: str, bus: BusConfig,
+                 topics: tuple[str, ...] = ("state", "truth", "estimate", "setpoint", "reference"),
+                 workdir: str | None = None) -> None:
+        from runtime.probe import Probe
+
+        self.workdir = workdir
+
+        self.proc = neso("up", *args)
+        self.output: list[str] = []
+        self._pump_thread = threading.Thread(target=self._pump, daemon=True)
+        self._pump_thread.start()
+        self._session_cm = session(bus)
+        self.s = self._session_cm.__enter__()
+        self.probe = Probe(self.s, topics=topics)
+
+    def _pump(self) -> None:
+        for line in self.proc.stdout:
+            self.output.append(line)
+
+    def close(self, *, kill: bool = False) -> str:
+        """Close the session, then Ctrl-C ``neso up`` and wait (``kill``: SIGKILL its process group
+        instead); everything it printed."""
+        import shutil
+
+        from runtime.launcher import interrupt
+
+        try:
+            self.probe.close()
+            self._session_cm.__exit__(None, None, None)
+            if kill:
+                if self.proc.poll() is None:
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+            else:
+                interrupt(self.proc)
+            self._pump_thread.join(5.0)
+            return "".join(self.output)
+        finally:
+            if self.workdir is not None:
+                shutil.rmtree(self.workdir, ignore_errors=True)
 
 
 def stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> str:

@@ -96,6 +96,21 @@ def open_dashboard(browser, url: str, timeout_s: float = 40.0):
             time.sleep(0.3)
 
 
+@contextlib.contextmanager
+def dashboard_page(url: str):
+    """Chromium (kept at nice 19 while inside) with one page on the dashboard at ``url``: (browser, page)."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = launch(pw)
+        try:
+            page = open_dashboard(browser, url)
+            with KeptReniced():
+                yield browser, page
+        finally:
+            browser.close()
+
+
 def text(page) -> str:
     """Everything the page says (its body's text)."""
     return page.evaluate("document.body.textContent")

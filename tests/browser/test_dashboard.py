@@ -11,10 +11,8 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import signal
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -23,12 +21,10 @@ import pytest
 
 from neso.netfile import load_network, save_network
 from runtime.client import command, get_params
-from runtime.launcher import interrupt
-from runtime.probe import Probe
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
-from tests.browser.chromium import (PLOT_POINTS_JS, KeptReniced, choose, hide_notifications, launch, open_dashboard,
+from tests.browser.chromium import (PLOT_POINTS_JS, choose, dashboard_page, hide_notifications, open_dashboard,
                                     set_lipschitz, status, tab, text, wait_status, wait_text)
-from tests.busutil import REPO, children_of, free_port, neso, peer, session
+from tests.busutil import REPO, NesoUp, children_of, free_port, peer
 from tests.helpers import candidate
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
@@ -36,25 +32,15 @@ KEYS = Keys("uav1")
 FIGURES: dict[str, object] = {}
 
 
-class Flight:
+class Flight(NesoUp):
     def __init__(self):
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.web_port = free_port()
         self.url = f"http://127.0.0.1:{self.web_port}"
-        self.workdir = tempfile.mkdtemp(prefix="neso-dashboard-test-")
-        self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint,
-                         "--dashboard-port", str(self.web_port), "--recordings-dir", f"{self.workdir}/recordings",
-                         "--registry", f"{self.workdir}/registry")
-        self.output: list[str] = []
-        self._pump_thread = threading.Thread(target=self._pump, daemon=True)
-        self._pump_thread.start()
-        self._session_cm = session(peer(self.endpoint))
-        self.s = self._session_cm.__enter__()
-        self.probe = Probe(self.s)
-
-    def _pump(self):
-        for line in self.proc.stdout:
-            self.output.append(line)
+        workdir = tempfile.mkdtemp(prefix="neso-dashboard-test-")
+        super().__init__("--scenario", "nominal_landing", "--mission", "hover", "--hub", endpoint,
+                         "--dashboard-port", str(self.web_port), "--recordings-dir", f"{workdir}/recordings",
+                         "--registry", f"{workdir}/registry", bus=peer(endpoint), workdir=workdir)
 
     def dashboard_pid(self) -> int | None:
         """The pid of the ``neso run dashboard`` under ``neso up``, None while there is none."""
@@ -67,32 +53,14 @@ class Flight:
                 return pid
         return None
 
-    def close(self) -> None:
-        """Ctrl-C ``neso up`` and wait; its output is in ``self.output`` (the pump is its only reader)."""
-        self._session_cm.__exit__(None, None, None)
-        try:
-            interrupt(self.proc)
-            self._pump_thread.join(5.0)
-        finally:
-            shutil.rmtree(self.workdir, ignore_errors=True)
-
 
 @pytest.fixture(scope="module")
 def flight():
-    from playwright.sync_api import sync_playwright
-
     f = Flight()
     try:
         f.probe.wait_for("setpoint", lambda m: m.seq > 50, timeout_s=60)
-        with sync_playwright() as pw:
-            browser = launch(pw)
-            try:
-                f.browser = browser
-                f.page = open_dashboard(browser, f.url)
-                with KeptReniced():
-                    yield f
-            finally:
-                browser.close()
+        with dashboard_page(f.url) as (f.browser, f.page):
+            yield f
     finally:
         f.close()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)

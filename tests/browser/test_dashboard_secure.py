@@ -7,70 +7,38 @@ this module checks they survive the secure bus.
 from __future__ import annotations
 
 import re
-import shutil
 import tempfile
-import threading
 import time
 
 import pytest
 
 from runtime.client import get_params
-from runtime.probe import Probe
 from runtime.schema import Keys
-from tests.browser.chromium import (KeptReniced, choose, launch, open_dashboard, set_lipschitz, tab, text, wait_status,
-                                    wait_text)
-from runtime.launcher import interrupt
-from tests.busutil import free_port, neso, secure_init, secure_peer, session
+from tests.browser.chromium import choose, dashboard_page, set_lipschitz, tab, text, wait_status, wait_text
+from tests.busutil import NesoUp, free_port, secure_init, secure_peer
 
 KEYS = Keys("uav1")
 
 
-class SecureFlight:
+class SecureFlight(NesoUp):
     def __init__(self):
-        self.workdir = tempfile.mkdtemp(prefix="neso-dashboard-secure-")
-        self.dir = secure_init(f"{self.workdir}/secure")
-        self.endpoint = f"tls/127.0.0.1:{free_port()}"
+        workdir = tempfile.mkdtemp(prefix="neso-dashboard-secure-")
+        self.dir = secure_init(f"{workdir}/secure")
+        endpoint = f"tls/127.0.0.1:{free_port()}"
         self.url = f"http://127.0.0.1:{free_port()}"
-        self.proc = neso("up", "--secure", "--secure-dir", self.dir, "--hub", self.endpoint, "--mission", "hover",
+        super().__init__("--secure", "--secure-dir", self.dir, "--hub", endpoint, "--mission", "hover",
                          "--scenario", "nominal_landing", "--dashboard-port", self.url.rsplit(":", 1)[1],
-                         "--no-record", "--no-trainer")
-        self.output: list[str] = []
-        self.pumping = threading.Thread(target=self._pump, daemon=True)
-        self.pumping.start()
-        self._session_cm = session(secure_peer(self.endpoint, self.dir, "recorder"))  # watches; may not steer
-        self.s = self._session_cm.__enter__()
-        self.probe = Probe(self.s)
-
-    def _pump(self):
-        for line in self.proc.stdout:
-            self.output.append(line)
-
-    def close(self) -> str:
-        self.probe.close()
-        self._session_cm.__exit__(None, None, None)
-        try:
-            interrupt(self.proc)  # Ctrl-C; the pump thread reads the rest
-            self.pumping.join(5.0)
-            return "".join(self.output)
-        finally:
-            shutil.rmtree(self.workdir, ignore_errors=True)
+                         "--no-record", "--no-trainer",
+                         bus=secure_peer(endpoint, self.dir, "recorder"), workdir=workdir)  # watches; may not steer
 
 
 @pytest.fixture(scope="module")
 def flight():
-    from playwright.sync_api import sync_playwright
-
     f = SecureFlight()
     try:
         f.probe.wait_for("setpoint", lambda m: m.seq > 50, timeout_s=60)
-        with sync_playwright() as pw:
-            browser = launch(pw)
-            try:
-                f.page = open_dashboard(browser, f.url)
-                with KeptReniced():
-                    yield f
-            finally:
-                browser.close()
+        with dashboard_page(f.url) as (f.browser, f.page):
+            yield f
     finally:
         out = f.close()
         print(out[-3000:])

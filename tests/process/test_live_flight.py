@@ -10,7 +10,6 @@ import math
 import os
 import random
 import signal
-import threading
 import time
 
 import msgpack
@@ -18,24 +17,18 @@ import numpy as np
 import pytest
 
 from runtime.client import get_params, set_params
-from runtime.probe import Probe
 from runtime.schema import TOPICS, EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError
-from tests.busutil import REPO, children_of, free_port, neso, peer, role_pid, session, stop
+from tests.busutil import REPO, NesoUp, children_of, free_port, neso, peer, role_pid, stop
 from tests.helpers import FORCE_STEP_LIMIT_N, max_force_step_n
 
 KEYS = Keys("uav1")
 
 
-class Flight:
+class Flight(NesoUp):
     def __init__(self):
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint,
-                         "--no-dashboard")
-        self.output: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
-        self._session_cm = session(peer(self.endpoint))
-        self.s = self._session_cm.__enter__()
-        self.probe = Probe(self.s, topics=("state", "truth", "estimate", "setpoint", "reference", "network"))
+        super().__init__("--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint, "--no-dashboard",
+                         bus=peer(self.endpoint), topics=("state", "truth", "estimate", "setpoint", "reference", "network"))
         self.health: dict[str, HealthMsg] = {}
         self.param_states: list[ParamStateMsg] = []
         self.events: list[EventMsg] = []
@@ -43,10 +36,6 @@ class Flight:
                      self.s.declare_subscriber(KEYS.every("params"), self._on_params),
                      self.s.declare_subscriber(KEYS.every("event"),
                                                lambda s: self.events.append(EventMsg.from_bytes(s.payload.to_bytes())))]
-
-    def _pump(self):
-        for line in self.proc.stdout:
-            self.output.append(line)
 
     def _on_health(self, sample):
         msg = HealthMsg.from_bytes(sample.payload.to_bytes())
@@ -73,12 +62,10 @@ class Flight:
     def pid_of(self, role: str) -> int:
         return role_pid(self.proc.pid, role)
 
-    def close(self):
+    def close(self) -> str:
         for sub in self.subs:
             sub.undeclare()
-        self._session_cm.__exit__(None, None, None)
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGKILL)
+        return super().close(kill=True)  # the faults above leave nothing worth a clean stop
 
 
 @pytest.fixture(scope="module")

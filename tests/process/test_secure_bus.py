@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import threading
 import time
 
 import numpy as np
@@ -23,8 +22,7 @@ from runtime.pki import Issued, issue, make_ca, write_private, write_public
 from runtime.probe import Probe
 from runtime.schema import HealthMsg, Keys
 from runtime.secure import CA_FILE, CA_KEY_FILE, cert_file, key_file
-from runtime.launcher import interrupt
-from tests.busutil import free_port, neso, role_pid, secure_init, secure_peer, session
+from tests.busutil import NesoUp, free_port, neso, role_pid, secure_init, secure_peer, session
 
 KEYS = Keys("uav1")
 
@@ -49,7 +47,7 @@ def credentials_dir(base: str, name: str, ca_pem: bytes, issued: Issued, identit
     return path
 
 
-class Flight:
+class Flight(NesoUp):
     def __init__(self, workdir: str):
         self.dir = secure_init(os.path.join(workdir, "secure"))
         with open(os.path.join(self.dir, CA_FILE), "rb") as f:
@@ -61,21 +59,11 @@ class Flight:
         self.port = free_port()
         self.endpoint = f"tls/127.0.0.1:{self.port}"
         self.recordings = os.path.join(workdir, "recordings")
-        self.proc = neso("up", "--secure", "--secure-dir", self.dir, "--hub", self.endpoint, "--mission", "hover",
+        super().__init__("--secure", "--secure-dir", self.dir, "--hub", self.endpoint, "--mission", "hover",
                          "--scenario", "nominal_landing", "--recordings-dir", self.recordings, "--no-trainer",
-                         "--dashboard-port", str(free_port()))
-        self.output: list[str] = []
-        self.pumping = threading.Thread(target=self._pump, daemon=True)
-        self.pumping.start()
-        self._cm = session(secure_peer(self.endpoint, self.dir, "operator"))
-        self.s = self._cm.__enter__()
-        self.probe = Probe(self.s)
+                         "--dashboard-port", str(free_port()), bus=secure_peer(self.endpoint, self.dir, "operator"))
         self.health: dict[str, HealthMsg] = {}
         self.sub = self.s.declare_subscriber(KEYS.every("health"), self._on_health)
-
-    def _pump(self):
-        for line in self.proc.stdout:
-            self.output.append(line)
 
     def _on_health(self, sample):
         msg = HealthMsg.from_bytes(sample.payload.to_bytes())
@@ -83,11 +71,7 @@ class Flight:
 
     def close(self) -> str:
         self.sub.undeclare()
-        self.probe.close()
-        self._cm.__exit__(None, None, None)
-        interrupt(self.proc)  # Ctrl-C; the pump thread reads the rest
-        self.pumping.join(5.0)
-        return "".join(self.output)
+        return super().close()
 
 
 @pytest.fixture(scope="module")
