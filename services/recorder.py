@@ -240,6 +240,8 @@ class Recorder:
         self._last_status = 0.0
         self._stop = threading.Event()
         self._compactions: list[threading.Thread] = []
+        self._compacting: set[Path] = set()  # files a compaction is rewriting now: one at a time per file
+        self._compacting_lock = threading.Lock()
         self._repaired: set[Path] = set()
 
     # -- called from Zenoh threads: enqueue only ------------------------------------------
@@ -412,6 +414,10 @@ class Recorder:
         """Rewrite a closed (or crashed) file with merged chunks, in the background."""
         from recordings.reader import RecordingError, repair
 
+        with self._compacting_lock:
+            if path in self._compacting:
+                return  # two rewrites of one file at once share its scratch file and corrupt it
+            self._compacting.add(path)
         self.pending.add(path)  # until it is done: a recorder stopped meanwhile compacts it at its next start
 
         def work() -> None:
@@ -421,6 +427,9 @@ class Recorder:
                 self.log(f"{path}: compacted ({what}), {path.stat().st_size / 1e3:.0f} kB")
             except (RecordingError, OSError, subprocess.SubprocessError) as exc:
                 self.log(f"{path}: left as written, could not compact it: {exc}")
+            finally:
+                with self._compacting_lock:
+                    self._compacting.discard(path)
 
         thread = threading.Thread(target=work, name="recorder-compact", daemon=True)
         thread.start()

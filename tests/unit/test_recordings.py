@@ -329,8 +329,9 @@ def test_a_recorder_restarted_mid_flight_repairs_the_cut_file_and_writes_the_nex
     first.writer.flush()  # flushed as the writer thread would, then "killed": never closed
     flight = first.flight
     assert statuses[-1].recording and statuses[-1].flight == flight and statuses[-1].segment == 0
-    second = Recorder(config, "uav1", publish_status=statuses.append, log=lambda *_: None)
-    second._repair_crashed(second.active.load())
+    logs = []
+    second = Recorder(config, "uav1", publish_status=statuses.append, log=logs.append)
+    second.prepare()  # repairs the cut file; it is then on the pending list too, and compacted once only
     for channel, msg in msgs[300:]:
         second._handle(("msg", channel, msg.to_bytes(), 10.0 + msg.stamp_s))
     assert (second.flight, second.segment) == (flight, 1)
@@ -345,6 +346,9 @@ def test_a_recorder_restarted_mid_flight_repairs_the_cut_file_and_writes_the_nex
     from recordings.reader import verify
 
     assert verify(tmp_path / f"{flight}.seg0.rrd")[0], "the cut segment was repaired"
+    rewrites = [line for line in logs if line.startswith(f"{tmp_path / flight}.seg0.rrd: ")]
+    assert rewrites == [f"{tmp_path / flight}.seg0.rrd: compacted (repaired after a crash), "
+                        f"{(tmp_path / f'{flight}.seg0.rrd').stat().st_size / 1e3:.0f} kB"], rewrites
     assert not (tmp_path / ".uav1.active.json").exists()
 
 
