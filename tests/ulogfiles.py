@@ -1,4 +1,5 @@
-"""Real ULog bytes made from the shared PX4 logs for tests and the bench: a topic removed, data
+"""Real ULog bytes made from the PX4 logs in ``tests/data/px4-ulog`` (copied from ``../shared/data``, so a
+clone anywhere runs them) for tests and the bench: a topic removed, data
 appended after the log closed, a log tiled to any length. Works on the ULog framing itself
 (16-byte header, then messages ``uint16 size, uint8 type, payload``; the spec's message types
 ``B`` flags, ``F`` format, ``A`` add-logged (multi_id u8, msg_id u16, name), ``D`` data (msg_id u16,
@@ -8,7 +9,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "px4-ulog"
+DATA = Path(__file__).resolve().parent / "data" / "px4-ulog"  # pyulog's test logs (BSD-3, LICENSE.md there)
 SITL_LOG = DATA / "px4-sitl-takeoff-hover.ulg"
 CUBE_LOG = DATA / "cubeorange-flight.ulg"
 HEADER = 16
