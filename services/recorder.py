@@ -315,7 +315,7 @@ class Recorder:
                     if now - self._last_status >= self.config.status_period_s:
                         self._guarded(self._status)
         finally:
-            drain_until = time.monotonic() + 0.5  # what arrived before the stop, within the launcher's patience
+            drain_until = time.monotonic() + 0.3  # what arrived before the stop, within the launcher's patience
             while time.monotonic() < drain_until:
                 try:
                     self._guarded(self._handle, self.queue.get_nowait())
@@ -541,6 +541,6 @@ def run(args, bus) -> int:
         everything.undeclare()
         recorder.stop()
         writer_thread.join(10.0)
-        recorder.join_compactions(1.0)
+        recorder.join_compactions(0.5)  # an unfinished one resumes at the next start; the launcher allows 2 s
 
     return run_node(node, main)
