@@ -6,6 +6,7 @@ COPY pyproject.toml README.md ./
 COPY neso neso
 COPY sim sim
 COPY runtime runtime
+COPY flight flight
 COPY services services
 COPY dashboard dashboard
 COPY recordings recordings

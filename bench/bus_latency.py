@@ -157,9 +157,9 @@ def udp_round_trips_s(rate_hz: float, n: int) -> list[float]:
 def sim_step_s(rate_hz: float, n: int = 5000) -> list[float]:
     """Wall time (s) of ``n`` sim source ticks at ``rate_hz``: ``SimSource.step()`` plus encoding
     the state and the truth, the work the source does each period besides sending."""
-    from services.source import SimSource, SourceConfig
+    from flight.source import SimSource, SourceConfig
 
-    core = SimSource(SourceConfig(rate_hz=rate_hz))
+    core = SimSource(SourceConfig(rate_hz=rate_hz), clock=time.monotonic)
     out = []
     for _ in range(n):
         t0 = time.perf_counter()

@@ -28,7 +28,7 @@ _DEFAULTS = dict(L1=5.0, Lu=20.0, ref_vel_max=0.5, ref_acc_max=1.0)
 def _flight_defaults() -> tuple[float, float, float, str]:
     """(k_p, k_d of z, ω_o, default network) as the services start: their config dataclasses."""
     from neso.control import ControlConfig
-    from services.estimator import EstimatorConfig
+    from flight.estimator import EstimatorConfig
 
     c, e = ControlConfig(), EstimatorConfig()
     return c.kp[2], c.kd[2], e.omega_o_rps, e.network

@@ -26,7 +26,7 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
     convention), at the network's certified physical bound."""
     from neso.certificate import flight_certificate
     from neso.netfile import NetworkFileError, load_network
-    from services.estimator import DEFAULT_NETWORK
+    from flight.estimator import DEFAULT_NETWORK
     from services.trainer import TrainerConfig
 
     gains = TrainerConfig()

@@ -89,7 +89,7 @@ def offline(args) -> int:
     """The trainer's job in this process: no bus, no offer."""
     from neso.netfile import NetworkFileError, load_network
     from recordings.reader import RecordingError
-    from services.estimator import DEFAULT_NETWORK
+    from flight.estimator import DEFAULT_NETWORK
     from services.trainer import TrainerConfig, parse_job, train_job
 
     if args.offer or args.promote:

@@ -7,7 +7,7 @@ from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
 
 
 def add_parser(subparsers) -> None:
-    from neso.mission import COMMANDS
+    from flight.mission import COMMANDS
     from sim.scenarios import SCENARIOS
 
     p = subparsers.add_parser("up", help="start the hub and every service (simulator source) and supervise them")

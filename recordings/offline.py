@@ -2,7 +2,7 @@
 
 What ``--what-if`` and the offline ESO teacher share: the recorded samples fed, in their recorded
 order (``stamp_s``; a setpoint before a state of the same stamp), to
-:class:`services.estimator.EstimatorCore`, exactly as the running service would get them. A gap in
+:class:`flight.estimator.EstimatorCore`, exactly as the running service would get them. A gap in
 the states (longer than ``gap_periods`` median periods: a logger dropout, a topic logged in bursts)
 starts a fresh step object, as a restarted estimator would: the observer is not integrated across
 time it never saw.

@@ -198,7 +198,7 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
     """Run the estimator service's step object with ``change`` on the recorded states and setpoints
     (in their recorded arrival order, :func:`recordings.offline.run_estimator`) and compare its f̂
     with the recorded one."""
-    from services.estimator import DEFAULT_NETWORK, EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
+    from flight.estimator import DEFAULT_NETWORK, EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
 
     states, setpoints = rec.channel("state").messages(), rec.channel("setpoint").messages()
     estimates = rec.channel("estimate").messages()
@@ -232,7 +232,7 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
     cores: list[EstimatorCore] = []  # one per recorded segment; the last one names the network that ran
 
     def make_core(dt_s: float) -> EstimatorCore:
-        core = EstimatorCore(dataclasses.replace(config, dt_s=dt_s), network, choice)
+        core = EstimatorCore(dataclasses.replace(config, dt_s=dt_s), network, choice, clock=time.monotonic)
         if bound is not None and network is not None and not np.isclose(bound, network.lipschitz_bound_physical()):
             core.apply({"lipschitz_bound": float(bound)})
         cores.append(core)

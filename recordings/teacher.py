@@ -2,7 +2,7 @@
 
 A recording with estimates has its teacher labels already (the f̂ flown under the ``eso`` pathway);
 one without (a PX4 log imported, a flight under another estimator) gets them here: the estimator
-service's own step object (:class:`services.estimator.EstimatorCore`, pathway ``eso``, no network)
+service's own step object (:class:`flight.estimator.EstimatorCore`, pathway ``eso``, no network)
 runs over the recorded states and setpoints exactly as ``--what-if`` runs it
 (:func:`recordings.offline.run_estimator`), restarting after every gap in the states.
 
@@ -14,6 +14,7 @@ names of a ``FlightSeries``: ``t_s``, ``pos_enu_m``, ``vel_enu_mps``, ``roll_rad
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,7 +75,7 @@ def eso_teacher(rec: Recording, *, omega_o_rps: float = 15.0, skip_s: float = 0.
                 gap_periods: float = GAP_PERIODS) -> TeacherRun:
     """The ESO (pathway ``eso``, observer bandwidth ``omega_o_rps``) over ``rec``'s states and
     setpoints; :class:`RecordingError` if it has no states or no setpoints."""
-    from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice
+    from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice
 
     states, setpoints = rec.channel("state", vehicle).messages(), rec.channel("setpoint", vehicle).messages()
     if not states or not setpoints:
@@ -82,7 +83,8 @@ def eso_teacher(rec: Recording, *, omega_o_rps: float = 15.0, skip_s: float = 0.
                              f"({len(states)} states, {len(setpoints)} setpoints)")
     config = EstimatorConfig(network="", pathway="eso", omega_o_rps=omega_o_rps)
     ours = run_estimator(states, setpoints, lambda dt_s: EstimatorCore(dataclasses.replace(config, dt_s=dt_s), None,
-                                                                       NetworkChoice(None, "none", None)),
+                                                                       NetworkChoice(None, "none", None),
+                                                                       clock=time.monotonic),
                          gap_periods=gap_periods)
     seq = np.array([m.seq for m in states], dtype=np.int64)
     t = np.array([m.t_s for m in states])

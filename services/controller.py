@@ -1,287 +1,22 @@
-"""``controller``: mission + state + f̂ → attitude setpoint, with a local ESO when f̂ goes stale.
+"""``controller`` on the bus: the thin adapter around :class:`flight.controller.ControllerCore`
+(what it does, its commands and its certificate check are documented there).
 
-Commands: the missions of :mod:`neso.mission` plus ``arm`` (allow a take-off: a controller
-started with ``--mission idle`` is disarmed, one started flying is armed), ``disarm`` (only
-on the ground), ``hold`` (stop where the vehicle is: the reference freezes at the measured
-position and the PD brakes the vehicle to it) and ``abort`` (land now from where it is).
-
-The step object (:class:`ControllerCore`) pairs each state sample with the estimate for the
-same ``seq`` and runs the position controller on them (the tick order of
-:func:`sim.runner.fly`). It also runs its own plain ESO on every sample (a few µs): if the
-estimate for the newest sample has not come within ``stale_timeout_s``, it flies on that
-local f̂ instead, says so on the bus, and keeps doing so until the estimator's estimates are
-back and warm. It never flies on a stale estimate. Mission commands and gain changes take
-effect at the next sample.
-
-Gain changes are checked against the stability certificate here, where they are applied: the
-estimator reports the physical Lipschitz constant of the network it flies and its ω_o
-(``NetworkMsg.certificate``), and a change of the z gains whose certificate then fails is
-refused with the margin in the reason unless the request carries ``override: true`` (applied,
-and an event says so). Until the estimator has reported, the check uses nothing it does not know:
-a gain change is refused as "certificate unknown" (also overridable).
+State and estimate samples go to the core with their arrival time; the (setpoint, reference) pairs it
+returns are published; a watchdog thread asks it every third of ``stale_timeout_s`` whether the newest
+sample waited too long (the local ESO then flies). Gain changes take effect at the next sample.
 """
 from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
-import numpy as np
+from flight.controller import CONTROLLER_PARAMS, ControllerConfig, ControllerCore
+from flight.mission import COMMANDS
+from neso.control import ControlConfig
+from runtime.params import ParamSet
+from runtime.schema import EstimateMsg, StateMsg
 
-from neso.certificate import flight_certificate, max_certified_lipschitz_best
-from neso.control import ControlConfig, PositionController
-from neso.eso import EsoConfig
-from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
-from neso.mission import COMMANDS, Mission, MissionConfig
-from neso.types import AttitudeSetpoint, StateMeasurement
-from runtime.params import Param, ParamSet, Refusal
-from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
-
-_KEEP = 64  # samples of unmatched states/estimates kept
-EXTRA_COMMANDS = ("arm", "disarm", "hold", "abort")
-ALL_COMMANDS = COMMANDS + EXTRA_COMMANDS
-_NEEDS_ARMING = ("takeoff", "hover", "landing_test", "lemniscate")
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    """``mission``: command started at the first sample of a flight (``idle``: wait for one).
-    ``stale_timeout_s``: how long the newest sample may wait for its estimate before the local
-    ESO takes over (default 3 periods); ``stale_samples``: it also takes over at the arrival of a
-    sample when this many before it went unanswered (0: by time only). The count acts on the
-    sample itself, where the time check waits for the watchdog thread, which a loaded machine
-    may wake late. ``warmup_ticks``: samples a (re)started estimator must have run before its
-    estimates are used again."""
-
-    control: ControlConfig = field(default_factory=ControlConfig)
-    mission: str = "hover"
-    missions: MissionConfig = field(default_factory=MissionConfig)
-    omega_o_rps: float = 15.0  # the local ESO's bandwidth
-    stale_timeout_s: float = 0.06
-    stale_samples: int = 3
-    warmup_ticks: int = 25
-
-
-CONTROLLER_PARAMS = (
-    Param("kp_xy", 6.0, float, "horizontal position gain", "1/s²", lo=0.1, hi=50.0),
-    Param("kd_xy", 4.5, float, "horizontal velocity gain", "1/s", lo=0.1, hi=30.0),
-    Param("kp_z", 10.0, float, "altitude position gain", "1/s²", lo=0.1, hi=50.0),
-    Param("kd_z", 6.0, float, "altitude velocity gain", "1/s", lo=0.1, hi=30.0),
-)
-
-
-@dataclass
-class _Pending:
-    """The newest sample not answered yet; ``waiting_since_s``: arrival of the oldest unanswered one."""
-
-    state: StateMsg
-    meas: StateMeasurement
-    waiting_since_s: float
-
-
-class ControllerCore:
-    """The pure step object. Feed :meth:`on_state`, :meth:`on_estimate` and :meth:`check_stale`;
-    each returns the (setpoint, reference) pairs to publish (zero or one) plus events."""
-
-    def __init__(self, config: ControllerConfig) -> None:
-        self.config = config
-        self.position = PositionController(config.control)
-        self.mission = Mission(config.missions)
-        self.local = NeuralESO(NeuralEsoConfig(eso=EsoConfig(omega_o_rps=config.omega_o_rps, dt_s=config.control.dt_s),
-                                               pathway="eso"))
-        self.using_local = False
-        self.events: list[tuple[str, str]] = []
-        self._estimates: dict[int, EstimateMsg] = {}
-        self._pending: _Pending | None = None
-        self._last_seq = -1
-        self._last_stepped = -1
-        self._applied = self.position.hover_output().applied
-        self._pending_command: tuple[str, dict] | None = None
-        self._pending_local = np.zeros(3)
-        self._last_output: list = []
-        self.armed = config.mission != "idle"
-        self.network_certificate: dict = {}  # the estimator's latest NetworkMsg.certificate
-        self.fallbacks = 0  # times the local ESO took over
-        self._newest_estimate: tuple[int, float] | None = None  # (seq, arrival) of the newest estimate
-
-    # -- the certificate ------------------------------------------------------------------
-    def on_network(self, msg: NetworkMsg) -> None:
-        self.network_certificate = dict(msg.certificate)
-
-    def _certificate_inputs(self) -> tuple[float, float] | None:
-        c = self.network_certificate
-        lip, omega = c.get("lipschitz_phys"), c.get("omega_o")
-        if isinstance(lip, (int, float)) and isinstance(omega, (int, float)) and omega > 0:
-            return float(lip), float(omega)
-        return None
-
-    def prepare_gains(self, values: dict) -> None:
-        """Compute (and cache) the certified bound for the proposed z gains, outside any lock."""
-        inputs = self._certificate_inputs()
-        if inputs is not None:
-            max_certified_lipschitz_best(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
-
-    def check_gains(self, values: dict) -> Refusal | None:
-        """Refuse (overridably) z gains under which the network flown is not certified."""
-        kp, kd = float(values["kp_z"]), float(values["kd_z"])
-        if (kp, kd) == (self.config.control.kp[2], self.config.control.kd[2]):
-            return None
-        inputs = self._certificate_inputs()
-        if inputs is None:
-            return Refusal("certificate unknown (no network report from the estimator yet)", overridable=True)
-        cert = flight_certificate(inputs[0], kp=kp, kd=kd, omega_o=inputs[1])
-        return None if cert.holds else Refusal(cert.text(), overridable=True)
-
-    # -- operator inputs (applied at the next sample) ---------------------------------------
-    def command(self, name: str, args: dict) -> tuple[bool, str]:
-        if name not in ALL_COMMANDS:
-            return False, f"unknown mission command {name!r}; choose one of {list(ALL_COMMANDS)}"
-        if name == "arm":
-            self.armed = True
-            return True, "armed: take-off allowed"
-        if name == "disarm":
-            if not self.mission.idle:
-                return False, f"disarm only on the ground (segment {self.mission.segment})"
-            self.armed = False
-            return True, "disarmed"
-        if name in ("hold", "abort") and self.mission.idle:
-            return False, f"on the ground (idle), nothing to {name}"
-        if name in _NEEDS_ARMING and not self.armed:
-            return False, f"{name} needs the vehicle armed (send arm first)"
-        self._pending_command = (name, dict(args))
-        return True, f"{name} starts at the next sample"
-
-    def apply_gains(self, values: dict) -> None:
-        control = replace(self.config.control, kp=(values["kp_xy"], values["kp_xy"], values["kp_z"]),
-                          kd=(values["kd_xy"], values["kd_xy"], values["kd_z"]))
-        force = self.position.force_prev_enu_n.copy()
-        self.config = replace(self.config, control=control)
-        self.position = PositionController(control)
-        self.position.reset(force)  # keep the rate limiter's memory: no step at the change
-
-    # -- samples ------------------------------------------------------------------------
-    def on_state(self, state: StateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        if state.seq == self._last_seq:
-            return self._last_output if self._last_stepped == state.seq else []  # a re-sent sample
-        if 0 < state.seq < self._last_seq:
-            return []  # late
-        meas = state_measurement(state)
-        if self._last_seq < 0 or state.seq < self._last_seq:
-            self._begin_flight(state, meas)
-        self._last_seq = state.seq
-        local = self.local.update(meas, self._applied)
-        waiting_since = self._pending.waiting_since_s if self._pending is not None else now_s
-        self._pending = _Pending(state, meas, waiting_since)
-        self._pending_local = local.f_hat
-        if self.using_local:
-            return self._step(local_f_hat=True, now_s=now_s)
-        if state.seq in self._estimates:
-            return self._step(local_f_hat=False, now_s=now_s)
-        if 0 < self.config.stale_samples < state.seq - self._last_stepped and self._last_stepped >= 0:
-            return self.check_stale(now_s, unanswered=state.seq - self._last_stepped - 1)
-        return []
-
-
-    def on_estimate(self, est: EstimateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        if self._newest_estimate is None or est.seq >= self._newest_estimate[0]:
-            self._newest_estimate = (est.seq, now_s)
-        if est.seq < self._last_stepped:
-            return []
-        self._estimates[est.seq] = est
-        for old in [s for s in self._estimates if s < est.seq - _KEEP]:
-            del self._estimates[old]
-        if self.using_local and est.warm_ticks >= self.config.warmup_ticks:
-            self.using_local = False
-            self.events.append(("info", f"estimator back (warm for {est.warm_ticks} samples): flying on its f̂ again"))
-            return []
-        p = self._pending
-        if not self.using_local and p is not None and p.state.seq == est.seq:
-            return self._step(local_f_hat=False, now_s=now_s)
-        return []
-
-    def check_stale(self, now_s: float, unanswered: int = 0) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        """Watchdog: no sample answered for ``stale_timeout_s`` (or ``unanswered`` samples before
-        the newest, see ``stale_samples``) → the local ESO flies the newest."""
-        p = self._pending
-        if self.using_local or p is None or (not unanswered and now_s - p.waiting_since_s < self.config.stale_timeout_s):
-            return []
-        self.using_local = True
-        self.fallbacks += 1
-        why = f"{unanswered} samples" if unanswered else f"{self.config.stale_timeout_s * 1e3:.0f} ms"
-        newest = (f"the estimator's newest answer was for sample {self._newest_estimate[0]}, "
-                  f"{(now_s - self._newest_estimate[1]) * 1e3:.0f} ms ago" if self._newest_estimate else
-                  "no estimate arrived yet")
-        self.events.append(("warning", f"no estimate for sample {p.state.seq} and the ones before it within "
-                                       f"{why}: flying on the local ESO ({newest})"))
-        return self._step(local_f_hat=True, now_s=now_s)
-
-    # -- internals ----------------------------------------------------------------------
-    def _begin_flight(self, state: StateMsg, meas: StateMeasurement) -> None:
-        self.position = PositionController(self.config.control)
-        self._applied = self.position.hover_output(meas.yaw_rad).applied
-        self.local.reset(meas, self._applied.thrust_n)
-        self._estimates.clear()
-        self._last_stepped = -1
-        self._newest_estimate = None  # a new flight's samples count from 0 again
-        self.mission = Mission(self.config.missions)
-        name = self.config.mission
-        if name != "idle":
-            if state.seq == 0:
-                self.mission.start(name, 0.0, meas.pos_enu_m)  # a flight starts at the source's t = 0
-            else:
-                self.mission.start("hover", state.t_s, meas.pos_enu_m)
-                self.events.append(("info", f"joined a flight at sample {state.seq}: holding position"))
-
-    def _step(self, *, local_f_hat: bool, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        p = self._pending
-        self._pending = None
-        if p.state.seq <= self._last_stepped:
-            return []
-        if self._pending_command is not None:
-            name, _ = self._pending_command
-            self._pending_command = None
-            if name == "hold":
-                if not self.mission.idle:
-                    self.mission.idle = True  # forget the old reference: hold where the vehicle is
-                    self.mission.start("hover", p.state.t_s, p.meas.pos_enu_m)
-                    self.mission._segments[0].name = "hold"
-            elif name == "abort":
-                if not self.mission.idle:
-                    self.mission.idle = True  # land from where the vehicle is, not from the reference
-                    self.mission.start("land", p.state.t_s, p.meas.pos_enu_m)
-                    self.events.append(("warning", "abort: landing now"))
-            else:
-                self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
-        used = None if local_f_hat else self._estimates[p.state.seq]
-        f_hat = self._pending_local if used is None else np.array(used.f_hat_mps2)
-        ref = self.mission.reference(p.state.t_s)
-        if ref is not None and self.mission.landed(p.meas.pos_enu_m[2], p.state.t_s):
-            ref = None
-            self.events.append(("info", "landed: motors idle"))
-        if ref is None:
-            setpoint = AttitudeSetpoint(0.0, 0.0, p.meas.yaw_rad, 0.0, 0.0)
-            self.position.reset(np.zeros(3))
-            self._applied = AppliedControl(acc_cmd_enu_mps2=np.array([0.0, 0.0, -self.config.control.vehicle.gravity_mps2]),
-                                           thrust_n=0.0)
-            reference = None
-        else:
-            out = self.position.step(p.meas, ref, f_hat)
-            setpoint, self._applied = out.setpoint, out.applied
-            reference = ReferenceMsg(seq=p.state.seq, stamp_s=now_s, t_s=p.state.t_s, pos_enu_m=vec(ref.pos_enu_m),
-                                     vel_enu_mps=vec(ref.vel_enu_mps), acc_enu_mps2=vec(ref.acc_enu_mps2),
-                                     yaw_rad=ref.yaw_rad, segment=self.mission.segment)
-        self._last_stepped = p.state.seq
-        msg = SetpointMsg(seq=p.state.seq, stamp_s=time.monotonic(), state_stamp_s=p.state.stamp_s, t_s=p.state.t_s,
-                          roll_rad=setpoint.roll_rad, pitch_rad=setpoint.pitch_rad, yaw_rad=setpoint.yaw_rad,
-                          thrust_norm=setpoint.thrust_norm, thrust_n=setpoint.thrust_n,
-                          acc_cmd_enu_mps2=vec(self._applied.acc_cmd_enu_mps2),
-                          estimate_source="local_eso" if local_f_hat else "estimator",
-                          estimate_stamp_s=0.0 if used is None else used.stamp_s)
-        self._last_output = [(msg, reference)]
-        return self._last_output
-
-
-# -- bus adapter ------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mission", default="hover", choices=("idle",) + COMMANDS,
                         help="mission started with the flight (default hover)")
@@ -304,7 +39,7 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     config = config_from_args(args)
-    core = ControllerCore(config)
+    core = ControllerCore(config, clock=time.monotonic)
     c = config.control
     params = ParamSet(CONTROLLER_PARAMS, {"kp_xy": c.kp[0], "kd_xy": c.kd[0], "kp_z": c.kp[2], "kd_z": c.kd[2]},
                       check=core.check_gains, prepare=core.prepare_gains)

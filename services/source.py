@@ -1,171 +1,23 @@
-"""``source``: where state samples come from — the simulator or a motion-capture system.
+"""``source`` on the bus: the thin adapter around :class:`flight.source.SimSource` and
+:class:`flight.source.MocapSource` (what each does is documented in :mod:`flight.source`).
 
-Simulator (:class:`SimSource`): steps :class:`sim.quadrotor.QuadrotorSim` one control period
-with the newest setpoint and publishes the state (and the truth). Two ways to run:
-
-- real time: one sample every period on the wall clock, the newest setpoint acts (a setpoint
-  that has not arrived by the next sample is a deadline miss: the previous one is held; misses
-  are counted in health ``counters`` and explained in a warning event at most once a second:
-  which process took the time, how late, and the machine's load, :mod:`services.deadline`);
-- lockstep: sample k+1 is computed only once setpoint k has arrived, so a run is
-  deterministic and reproduces :func:`sim.runner.fly` exactly (same seed, same network).
-
-Command ``scenario`` (args ``{"name": <scenario>}``, simulator in real time only): the world
-restarts with that scenario at the next period, without any process restarting. The new world
-is a new flight: ``seq`` and the source's clock start again at 0, which is how the estimator
-and the controller recognise a new flight (they re-initialise and fly its start mission).
-
-Motion capture (:class:`MocapSource`): frames from the ``motioncapture`` library (OptiTrack,
-Vicon, Qualisys, VRPN, ... as Crazyswarm2 uses it), the configured rigid body mapped into
-ENU, velocity from a filtered finite difference, published at the control rate. Setpoints
-then go to the vehicle (the PX4 gateway), not to the source.
+Real time: one sample every period on the wall clock, the newest setpoint acts; lockstep: sample k+1
+once setpoint k has arrived. Command ``scenario`` restarts the world as a new flight.
 """
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
+from flight.deadline import DeadlineWatch
 import numpy as np
 
-from neso.control import ControlConfig, PositionController
-from neso.rotations import euler_zyx_from_world_from_body
-from neso.types import AttitudeSetpoint
-from runtime.schema import SetpointMsg, StateMsg, TruthMsg, vec
-from services.deadline import DeadlineWatch
+from flight.source import FRAMES, MocapConfig, MocapSource, SimSource, SourceConfig, frame_matrix
+from runtime.schema import SetpointMsg, StateMsg
 
-# mocap frame → ENU rotations: p_enu = M @ p_mocap
-FRAMES: dict[str, tuple[tuple[float, ...], ...]] = {
-    "enu": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    "ned": ((0, 1, 0), (1, 0, 0), (0, 0, -1)),
-    "y_up": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),  # OptiTrack/Motive default: x, y up, z towards the operator
-}
-
-
-@dataclass(frozen=True)
-class MocapConfig:
-    """``type``/``hostname``: passed to ``motioncapture.connect``. ``rigid_body``: the vehicle's
-    name in the mocap software. ``frame``: a name in :data:`FRAMES` or 9 numbers (row-major M)."""
-
-    type: str = "optitrack"
-    hostname: str = "127.0.0.1"
-    rigid_body: str = "uav1"
-    frame: str = "y_up"
-    vel_cutoff_hz: float = 15.0
-
-
-@dataclass(frozen=True)
-class SourceConfig:
-    backend: str = "sim"  # "sim" or "mocap"
-    scenario: str = "nominal_landing"
-    seed: int = 1
-    rate_hz: float = 50.0
-    start: str = "scenario"  # "scenario": the scenario's start pose; "ground": on the floor below it
-    lockstep: bool = False
-    duration_s: float = 0.0  # 0: until stopped
-    wait_for: tuple[str, ...] = ("estimator", "controller")
-    lockstep_resend_s: float = 1.0
-    mocap: MocapConfig = field(default_factory=MocapConfig)
-    link: str = "direct"  # "direct": bus setpoints act; "mavlink": a MAVLink PX4 stand-in takes them (sim/mavlink_vehicle.py)
-    mavlink_out: str = "udpout:127.0.0.1:14540"
-    mavlink_log: str = ""
-
-
-class SimSource:
-    """The simulator as a pure step object: :meth:`take` a setpoint, :meth:`step` a period."""
-
-    def __init__(self, config: SourceConfig) -> None:
-        from sim.quadrotor import QuadrotorSim
-        from sim.scenarios import make_scenario
-
-        self.config = config
-        self.scenario = make_scenario(config.scenario, control_period_s=1.0 / config.rate_hz)
-        self.sim = QuadrotorSim(self.scenario, seed=config.seed)
-        x, y, z = self.scenario.initial_pos_enu_m
-        self.sim.reset(pos_enu_m=(x, y, z if config.start == "scenario" else -1.0), yaw_rad=self.scenario.initial_yaw_rad)
-        on_ground = self.sim.truth.on_ground
-        hover = PositionController(ControlConfig(dt_s=1.0 / config.rate_hz)).hover_output(self.scenario.initial_yaw_rad)
-        self.setpoint = AttitudeSetpoint(0.0, 0.0, 0.0, 0.0, 0.0) if on_ground else hover.setpoint
-        self.setpoint_seq = -1
-        self.seq = -1
-
-    def take(self, sp: SetpointMsg) -> None:
-        """Hold ``sp`` from the next period on (older ones than held are ignored)."""
-        if sp.seq >= self.setpoint_seq or sp.seq == self.seq:
-            self.setpoint_seq = sp.seq
-            self.setpoint = AttitudeSetpoint(sp.roll_rad, sp.pitch_rad, sp.yaw_rad, sp.thrust_norm, sp.thrust_n)
-
-    def step(self) -> tuple[StateMsg, TruthMsg]:
-        meas = self.sim.step(self.setpoint)
-        truth = self.sim.truth
-        self.seq += 1
-        now = time.monotonic()
-        state = StateMsg(seq=self.seq, stamp_s=now, t_s=truth.t_s, pos_enu_m=vec(meas.pos_enu_m),
-                         vel_enu_mps=vec(meas.vel_enu_mps), roll_rad=meas.roll_rad, pitch_rad=meas.pitch_rad,
-                         yaw_rad=meas.yaw_rad, source="sim")
-        truth_msg = TruthMsg(seq=self.seq, stamp_s=now, t_s=truth.t_s, pos_enu_m=vec(truth.pos_enu_m),
-                             vel_enu_mps=vec(truth.vel_enu_mps),
-                             disturbance_acc_enu_mps2=vec(np.clip(truth.disturbance_acc_enu_mps2, -1e4, 1e4)),
-                             on_ground=bool(truth.on_ground), crashed=bool(self.sim.crashed or self.sim.diverged),
-                             scenario=self.scenario.name)
-        return state, truth_msg
-
-
-def frame_matrix(frame: str) -> np.ndarray:
-    if frame in FRAMES:
-        return np.array(FRAMES[frame], dtype=float)
-    values = [float(v) for v in frame.replace(",", " ").split()]
-    m = np.array(values).reshape(3, 3) if len(values) == 9 else None
-    if m is None or not np.allclose(m @ m.T, np.eye(3), atol=1e-6) or not np.isclose(np.linalg.det(m), 1.0, atol=1e-6):
-        raise ValueError(f"frame {frame!r}: a name in {sorted(FRAMES)} or 9 numbers of a rotation matrix")
-    return m
-
-
-class MocapSource:
-    """Rigid-body frames → state samples (pure: give it poses, it gives messages)."""
-
-    def __init__(self, config: MocapConfig, rate_hz: float) -> None:
-        self.config = config
-        self.enu_from_mocap = frame_matrix(config.frame)
-        self.period_s = 1.0 / rate_hz
-        self.seq = -1
-        self._t0: float | None = None
-        self._prev: tuple[float, np.ndarray] | None = None
-        self._vel = np.zeros(3)
-        self._next_publish_s = -math.inf
-
-    def frame(self, t_s: float, pos_m: np.ndarray, quat_wxyz: tuple[float, float, float, float]) -> StateMsg | None:
-        """One mocap frame at monotonic ``t_s``: the state to publish, or None between control ticks."""
-        if self._t0 is None:
-            self._t0 = t_s
-        pos = self.enu_from_mocap @ np.asarray(pos_m, dtype=float)
-        if self._prev is not None and t_s > self._prev[0]:
-            dt = t_s - self._prev[0]
-            raw = (pos - self._prev[1]) / dt
-            a = math.exp(-2 * math.pi * self.config.vel_cutoff_hz * dt)
-            self._vel = a * self._vel + (1 - a) * raw
-        self._prev = (t_s, pos)
-        if t_s < self._next_publish_s - self.period_s / 4:  # a quarter period of slack for frame jitter
-            return None
-        self._next_publish_s += self.period_s
-        if self._next_publish_s < t_s:  # first frame, or frames stopped for a while: re-anchor the grid
-            self._next_publish_s = t_s + self.period_s
-        w, x, y, z = quat_wxyz
-        body = np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ])
-        roll, pitch, yaw = euler_zyx_from_world_from_body(self.enu_from_mocap @ body @ self.enu_from_mocap.T)
-        self.seq += 1
-        return StateMsg(seq=self.seq, stamp_s=time.monotonic(), t_s=t_s - self._t0, pos_enu_m=vec(pos),
-                        vel_enu_mps=vec(self._vel), roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, source="mocap")
-
-
-# -- bus adapter ------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from sim.scenarios import SCENARIOS
 
@@ -215,7 +67,7 @@ def run(args, bus) -> int:
 
 
 def _run_sim(node, config: SourceConfig) -> None:
-    core = SimSource(config)
+    core = SimSource(config, clock=time.monotonic)
     put_state, put_truth = node.publisher("state"), node.publisher("truth")
     arrived = threading.Condition(node.lock)
     misses = [0]
@@ -254,7 +106,7 @@ def _run_sim(node, config: SourceConfig) -> None:
     while not node.stopping and (n_total is None or core.seq + 1 < n_total):
         with node.lock:
             if next_scenario:
-                core = SimSource(replace(core.config, scenario=next_scenario.pop()))
+                core = SimSource(replace(core.config, scenario=next_scenario.pop()), clock=time.monotonic)
                 node.event("info", f"world restarted with scenario {core.config.scenario}")
             elif not config.lockstep and core.seq >= 0 and core.setpoint_seq != core.seq:
                 misses[0] += 1
@@ -291,7 +143,7 @@ def _run_sim_mavlink(node, config: SourceConfig) -> None:
     from runtime.schema import state_measurement
     from sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
 
-    core = SimSource(config)
+    core = SimSource(config, clock=time.monotonic)
     vehicle = MavlinkVehicle(VehicleConfig(target=config.mavlink_out, log_path=config.mavlink_log,
                                            hover_thrust_norm=core.sim.config.params.hover_thrust_norm),
                              dt_s=1.0 / config.rate_hz)
@@ -340,7 +192,7 @@ def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) ->
 def _run_mocap(node, config: SourceConfig) -> None:
     import motioncapture
 
-    core = MocapSource(config.mocap, config.rate_hz)
+    core = MocapSource(config.mocap, config.rate_hz, clock=time.monotonic)
     put_state = node.publisher("state")
     name = config.mocap.rigid_body
     node.log(f"connecting to {config.mocap.type} at {config.mocap.hostname}, rigid body {name!r}, frame {config.mocap.frame}")

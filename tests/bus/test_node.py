@@ -19,7 +19,7 @@ from runtime.client import command, get_params, set_params
 from runtime.node import Node
 from runtime.params import ParamSet
 from runtime.schema import CommandReply, HealthMsg, Keys, ParamReply, StateMsg
-from services.estimator import EstimatorConfig, NetworkChoice, estimator_params, load_flown_network
+from flight.estimator import EstimatorConfig, NetworkChoice, estimator_params, load_flown_network
 from tests.busutil import free_port, hub, peer, session
 from tests.helpers import BASE, EXAMPLES, REPO
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from neso.learning import recipe_of
 from neso.netfile import load_network
-from services.estimator import DEFAULT_NETWORK
+from flight.estimator import DEFAULT_NETWORK
 from tests.busutil import REPO, free_port
 from tests.helpers import flight_messages, write_recording
 

@@ -14,7 +14,7 @@ import os
 import pytest
 
 from cli.demo import FORCE_STEP_LIMIT_N, fly_tdr_loop
-from neso.hotswap import CanaryConfig
+from flight.hotswap import CanaryConfig
 from tests.busutil import free_port
 
 pytestmark = pytest.mark.slow  # ~100 s: the whole loop in real time

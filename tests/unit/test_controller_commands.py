@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 from runtime.schema import StateMsg
-from services.controller import ControllerConfig, ControllerCore
-from tests.helpers import estimate
+from flight.controller import ControllerConfig, ControllerCore
+from tests.helpers import estimate, fixed_clock
 
 
 def moving_state(seq, z, vz=0.0):
@@ -20,7 +20,7 @@ def step(core, seq, z, vz=0.0):
 
 
 def test_a_controller_started_idle_is_disarmed_and_refuses_take_off_until_armed():
-    core = ControllerCore(ControllerConfig(mission="idle"))
+    core = ControllerCore(ControllerConfig(mission="idle"), clock=fixed_clock)
     step(core, 0, 0.0)
     ok, why = core.command("takeoff", {})
     assert not ok and "arm" in why
@@ -33,12 +33,12 @@ def test_a_controller_started_idle_is_disarmed_and_refuses_take_off_until_armed(
 
 
 def test_a_controller_started_flying_is_armed():
-    core = ControllerCore(ControllerConfig(mission="hover"))
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
     assert core.armed and core.command("landing_test", {})[0]
 
 
 def test_hold_freezes_the_reference_where_the_vehicle_is():
-    core = ControllerCore(ControllerConfig(mission="hover"))
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
     step(core, 0, 1.0)
     core.command("landing_test", {})
     for k in range(1, 100):
@@ -54,7 +54,7 @@ def test_hold_freezes_the_reference_where_the_vehicle_is():
 
 
 def test_abort_lands_from_where_the_vehicle_is():
-    core = ControllerCore(ControllerConfig(mission="hover"))
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
     step(core, 0, 1.0)
     core.command("lemniscate", {})
     step(core, 1, 0.8)
@@ -66,7 +66,7 @@ def test_abort_lands_from_where_the_vehicle_is():
 
 
 def test_hold_and_abort_on_the_ground_are_refused_with_the_reason():
-    core = ControllerCore(ControllerConfig(mission="idle"))
+    core = ControllerCore(ControllerConfig(mission="idle"), clock=fixed_clock)
     step(core, 0, 0.0)
     for name in ("hold", "abort"):
         ok, why = core.command(name, {})
@@ -77,7 +77,7 @@ def test_a_land_ends_with_motors_idle_when_the_vehicle_rests_on_its_feet_above_t
     """The simulated vehicle's body origin rests 0.05 m above the floor, above ``landed_height_m``:
     the land still ends (reference on the floor for 1 s, vehicle low), where it used to push on
     the floor with minimum thrust for ever, and a recorder never saw the flight end."""
-    core = ControllerCore(ControllerConfig(mission="hover"))
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
     step(core, 0, 0.3)
     assert core.command("land", {})[0]
     thrusts = []

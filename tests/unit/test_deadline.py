@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from runtime.schema import SetpointMsg
-from services.deadline import DeadlineWatch, Miss
+from flight.deadline import DeadlineWatch, Miss
 
 
 def setpoint(seq, *, state_s, estimate_s, published_s):

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
-from neso.hotswap import Canary, CanaryConfig, ShadowError, gate
+from flight.hotswap import Canary, CanaryConfig, ShadowError, gate
 from neso.netfile import load_network, network_to_bytes, save_network
 from neso.network import LipschitzMLP
 from runtime.schema import ReferenceMsg, StateMsg
-from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
-from tests.helpers import BASE, REPO, candidate, measurement, nan_weights, random_network, with_header, with_meta
+from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
+from tests.helpers import (BASE, REPO, candidate, fixed_clock, measurement, nan_weights, random_network, with_header,
+                           with_meta)
 
 
 
@@ -100,7 +101,8 @@ def state(seq, z=0.3):
 @pytest.fixture
 def core():
     net, source = load_flown_network(BASE)
-    return EstimatorCore(EstimatorConfig(network=BASE, network_dir=""), net, NetworkChoice(net, source, None))
+    return EstimatorCore(EstimatorConfig(network=BASE, network_dir=""), net, NetworkChoice(net, source, None),
+                         clock=fixed_clock)
 
 
 def test_offer_shadow_promote_rollback(core, tmp_path):
@@ -145,7 +147,7 @@ def test_refused_offers_leave_the_active_network_and_candidate_untouched(core, t
 def test_an_l_n_change_shows_where_the_network_came_from_and_is_fixed_after_a_promote(tmp_path):
     net, source = load_flown_network(BASE)
     choice = NetworkChoice(net, source, str(REPO / "networks"))
-    core = EstimatorCore(EstimatorConfig(network=BASE), net, choice)
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, choice, clock=fixed_clock)
     half = load_network(REPO / "networks" / "base-x0.5.safetensors").lipschitz_bound_physical()
     core.apply({"lipschitz_bound": half})
     assert core.active_info["source"] == "file" and core.active_info["path"].endswith("base-x0.5.safetensors")
@@ -177,10 +179,11 @@ def test_an_l_n_typed_as_shown_finds_the_network_trained_for_it_and_never_flies_
 def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overridden():
     from runtime.params import ParamSet
 
-    from services.estimator import estimator_params
+    from flight.estimator import estimator_params
 
     net, source = load_flown_network(BASE)
-    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, str(REPO / "networks")))
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, str(REPO / "networks")),
+                         clock=fixed_clock)
     assert core.certificate().holds, core.certificate().text()
     double = load_network(REPO / "networks" / "base-x2.safetensors").lipschitz_bound_physical()
     cert = core.certificate_of(core.choice.network_for(double)[0])
@@ -200,7 +203,7 @@ def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overri
 
 def test_the_certificate_follows_the_controller_gains():
     net, source = load_flown_network(BASE)
-    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, None))
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, None), clock=fixed_clock)
     assert core.certificate().holds and core.set_gains(*core.gains_z) is None
     note = core.set_gains(core.gains_z[0], 0.5)  # a soft derivative gain shrinks what is certified
     assert note is not None and "FAILS" in note
@@ -209,7 +212,7 @@ def test_the_certificate_follows_the_controller_gains():
 
 
 def test_an_uncertified_startup_network_is_not_flown_unless_allowed():
-    from services.estimator import startup_network
+    from flight.estimator import startup_network
 
     paper, _ = load_flown_network(str(REPO / "networks" / "paper" / "base-L1.safetensors"))
     gains = (10.0, 6.0)
@@ -278,7 +281,7 @@ def _reference(seq, z_ref, segment):
 def test_the_estimator_rolls_back_by_itself_between_two_samples_and_says_why(tmp_path):
     net, source = load_flown_network(BASE)
     config = EstimatorConfig(network=BASE, canary=CanaryConfig(window_samples=40))
-    core = EstimatorCore(config, net, NetworkChoice(net, source, None))
+    core = EstimatorCore(config, net, NetworkChoice(net, source, None), clock=fixed_clock)
     path = str(tmp_path / "cand.safetensors")
     save_network(path, candidate())
     for k in range(100):  # 2 s of hover 1 mm off the reference

@@ -8,10 +8,10 @@ import pytest
 
 from runtime.params import Param, ParamSet
 from runtime.schema import StateMsg
-from services.controller import ControllerConfig, ControllerCore
-from services.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, estimator_params, load_flown_network
-from services.source import MocapConfig, MocapSource, frame_matrix
-from tests.helpers import BASE, REPO, estimate
+from flight.controller import ControllerConfig, ControllerCore
+from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, estimator_params, load_flown_network
+from flight.source import MocapConfig, MocapSource, frame_matrix
+from tests.helpers import BASE, REPO, estimate, fixed_clock
 
 
 def state(seq, z=1.0, t=None):
@@ -67,7 +67,7 @@ def test_a_bound_above_the_training_bound_without_a_network_is_refused(choice):
 
 
 def test_estimator_core_applies_pathway_and_bound_at_the_next_sample(choice):
-    core = EstimatorCore(EstimatorConfig(network=BASE), choice.loaded, choice)
+    core = EstimatorCore(EstimatorConfig(network=BASE), choice.loaded, choice, clock=fixed_clock)
     ps = ParamSet(estimator_params(core.config, _bound("base")), check=core.check)
     assert not ps.request({"lipschitz_bound": 5.0})[0]
     out = core.on_state(state(0), 0.0)
@@ -84,7 +84,7 @@ def test_estimator_core_applies_pathway_and_bound_at_the_next_sample(choice):
 def test_lockstep_estimator_waits_for_the_previous_setpoint(choice):
     from runtime.schema import SetpointMsg
 
-    core = EstimatorCore(EstimatorConfig(network=BASE, lockstep=True), choice.loaded, choice)
+    core = EstimatorCore(EstimatorConfig(network=BASE, lockstep=True), choice.loaded, choice, clock=fixed_clock)
     assert len(core.on_state(state(0), 0.0)) == 1
     assert core.on_state(state(1), 0.0) == []
     sp = SetpointMsg(seq=0, stamp_s=1.0, state_stamp_s=1.0, t_s=0.02, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0,
@@ -94,7 +94,7 @@ def test_lockstep_estimator_waits_for_the_previous_setpoint(choice):
 
 # -- controller -------------------------------------------------------------------------------
 def test_controller_pairs_state_and_estimate_in_either_order():
-    core = ControllerCore(ControllerConfig())
+    core = ControllerCore(ControllerConfig(), clock=fixed_clock)
     assert core.on_state(state(0), 0.0) == []
     (sp, ref), = core.on_estimate(estimate(0), 0.001)
     assert sp.seq == 0 and sp.estimate_source == "estimator" and ref.segment == "hover"
@@ -106,7 +106,7 @@ def test_controller_pairs_state_and_estimate_in_either_order():
 
 def test_controller_falls_back_to_its_local_eso_when_the_estimate_is_stale_and_returns_when_warm():
     cfg = ControllerConfig(stale_timeout_s=0.06, warmup_ticks=25)
-    core = ControllerCore(cfg)
+    core = ControllerCore(cfg, clock=fixed_clock)
     t = 0.0
     for k in range(10):
         core.on_state(state(k), t)
@@ -139,7 +139,7 @@ def test_controller_falls_back_to_its_local_eso_when_the_estimate_is_stale_and_r
 def test_controller_falls_back_at_the_sample_after_three_unanswered_ones_without_its_watchdog():
     """A late watchdog thread (a loaded machine) must not delay the fallback: the fourth sample
     in a row without an estimate is flown on the local ESO when it arrives."""
-    core = ControllerCore(ControllerConfig(stale_timeout_s=0.06, stale_samples=3))
+    core = ControllerCore(ControllerConfig(stale_timeout_s=0.06, stale_samples=3), clock=fixed_clock)
     t = 0.0
     for k in range(10):
         core.on_state(state(k), t)
@@ -151,7 +151,7 @@ def test_controller_falls_back_at_the_sample_after_three_unanswered_ones_without
 
 
 def test_controller_gain_change_keeps_the_force_continuous():
-    core = ControllerCore(ControllerConfig())
+    core = ControllerCore(ControllerConfig(), clock=fixed_clock)
     core.on_state(state(0, z=0.9), 0.0)
     (sp0, _), = core.on_estimate(estimate(0, fz=0.0), 0.0)
     core.apply_gains({"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 40.0, "kd_z": 6.0})
@@ -161,7 +161,7 @@ def test_controller_gain_change_keeps_the_force_continuous():
 
 
 def test_mission_commands_take_effect_at_the_next_sample():
-    core = ControllerCore(ControllerConfig(mission="hover"))
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
     core.on_state(state(0), 0.0)
     core.on_estimate(estimate(0), 0.0)
     assert core.command("fly_to_mars", {})[0] is False
@@ -173,7 +173,7 @@ def test_mission_commands_take_effect_at_the_next_sample():
 
 # -- motion capture mapping -------------------------------------------------------------------
 def test_mocap_y_up_frame_maps_to_enu_and_velocity_follows():
-    src = MocapSource(MocapConfig(frame="y_up", vel_cutoff_hz=1e6), rate_hz=50.0)
+    src = MocapSource(MocapConfig(frame="y_up", vel_cutoff_hz=1e6), rate_hz=50.0, clock=fixed_clock)
     # y-up frame: 1 m above the floor is y = 1; "towards the operator" z = -2 is 2 m north (ENU y)
     msg = src.frame(0.0, np.array([0.5, 1.0, -2.0]), (1.0, 0.0, 0.0, 0.0))
     assert msg.pos_enu_m == pytest.approx((0.5, 2.0, 1.0))

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neso.hotswap import gate
+from flight.hotswap import gate
 from neso.netfile import load_network
 from neso.certificate import max_certified_lipschitz_best
 from neso.learning import RECIPES
