@@ -241,14 +241,9 @@ class ControllerCore:
             name, _ = self._pending_command
             self._pending_command = None
             if name == "hold":
-                if not self.mission.idle:
-                    self.mission.idle = True  # forget the old reference: hold where the vehicle is
-                    self.mission.start("hover", p.state.t_s, p.meas.pos_enu_m)
-                    self.mission._segments[0].name = "hold"
+                self.mission.hold(p.state.t_s, p.meas.pos_enu_m)
             elif name == "abort":
-                if not self.mission.idle:
-                    self.mission.idle = True  # land from where the vehicle is, not from the reference
-                    self.mission.start("land", p.state.t_s, p.meas.pos_enu_m)
+                if self.mission.abort(p.state.t_s, p.meas.pos_enu_m):
                     self.events.append(("warning", "abort: landing now"))
             else:
                 self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)

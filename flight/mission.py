@@ -97,13 +97,14 @@ class Mission:
     _last: Reference | None = None
     segment: str = "idle"
 
-    def start(self, name: str, t_s: float, pos_enu_m: np.ndarray) -> None:
-        """Begin command ``name`` at ``t_s`` from ``pos_enu_m`` (the current reference, or the
-        vehicle's position when nothing was tracked yet)."""
+    def start(self, name: str, t_s: float, pos_enu_m: np.ndarray, *, from_position: bool = False) -> None:
+        """Begin command ``name`` at ``t_s`` from the current reference, or from the vehicle's
+        position ``pos_enu_m`` when nothing was tracked yet or ``from_position``."""
         if name not in COMMANDS:
             raise ValueError(f"unknown mission command {name!r}; choose one of {COMMANDS}")
         c = self.config
-        here = tuple(float(v) for v in (self._last.pos_enu_m if self._last is not None and not self.idle else pos_enu_m))
+        tracked = self._last is not None and not self.idle and not from_position
+        here = tuple(float(v) for v in (self._last.pos_enu_m if tracked else pos_enu_m))
         ox, oy = c.origin_xy_m
         self._segments = []
         self.idle = False
@@ -130,6 +131,22 @@ class Mission:
             ground = (here[0], here[1], -0.05)  # a little below the floor so contact is certain
             duration = max(1.0, (here[2] - ground[2]) / c.land_speed_mps)
             self._append("land", _Transit(here, ground, duration), t_s, math.inf)
+
+    def hold(self, t_s: float, pos_enu_m: np.ndarray) -> bool:
+        """Stop where the vehicle is: from ``t_s`` the reference holds the measured ``pos_enu_m``
+        (segment ``hold``), forgetting the old reference. False (nothing done) while idle."""
+        if self.idle:
+            return False
+        self._segments = []
+        self._append("hold", _Hold(tuple(float(v) for v in pos_enu_m)), t_s, math.inf)
+        return True
+
+    def abort(self, t_s: float, pos_enu_m: np.ndarray) -> bool:
+        """Land now from where the vehicle is (``pos_enu_m``), not from the reference. False while idle."""
+        if self.idle:
+            return False
+        self.start("land", t_s, pos_enu_m, from_position=True)
+        return True
 
     def _append(self, name: str, trajectory, start_s: float, duration_s: float) -> None:
         self._segments.append(_Segment(name, trajectory, start_s, duration_s))
