@@ -21,8 +21,9 @@ import numpy as np
 from dashboard.model import FleetModel, StatusItem, VehicleModel, certificate_shown, status_line
 from dashboard.provenance import provenance_line
 from dashboard.scene import Scene
+from flight.controller import CONTROLLER_PARAMS
+from neso.types import OMEGA_O_RPS, PATHWAYS
 
-PATHWAYS = ("neural_eso", "eso", "nn", "none")
 RISKY_PATHWAYS = ("nn", "none")  # no online correction: confirm while airborne
 MISSIONS = (("Arm", "arm", None), ("Take off", "takeoff", None), ("Hover", "hover", None),
             ("Landing test", "landing_test", None), ("Lemniscate", "lemniscate", None), ("Land", "land", None),
@@ -144,9 +145,9 @@ class DashboardView:
                 self.scenario_dd = gui.add_dropdown("Scenario", tuple(SCENARIOS), initial_value="nominal")
                 gui.add_button("Restart world with scenario").on_click(lambda _: self._scenario())
             with gui.add_folder("Advanced: gains", expand_by_default=False):
-                self.gain_in = {k: gui.add_number(k, v, min=0.1, max=50.0, step=0.1)
-                                for k, v in (("kp_xy", 6.0), ("kd_xy", 4.5), ("kp_z", 10.0), ("kd_z", 6.0))}
-                self.omega_in = gui.add_number("ω_o rad/s (start-up, read-only)", 15.0, disabled=True)
+                self.gain_in = {p.name: gui.add_number(p.name, p.default, min=p.lo, max=p.hi, step=0.1)
+                                for p in CONTROLLER_PARAMS}
+                self.omega_in = gui.add_number("ω_o rad/s (start-up, read-only)", OMEGA_O_RPS, disabled=True)
                 self.gain_override = gui.add_checkbox("Override certificate (gains)", False)
                 gui.add_button("Apply gains").on_click(lambda _: self._apply_gains())
         with tabs.add_tab("Services"):

@@ -27,16 +27,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from flight import KEEP_SAMPLES
 from neso.certificate import flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from flight.mission import COMMANDS, Mission, MissionConfig
-from neso.types import AttitudeSetpoint, StateMeasurement
+from neso.types import OMEGA_O_RPS, AttitudeSetpoint, StateMeasurement
 from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
-_KEEP = 64  # samples of unmatched states/estimates kept
 EXTRA_COMMANDS = ("arm", "disarm", "hold", "abort")
 ALL_COMMANDS = COMMANDS + EXTRA_COMMANDS
 _NEEDS_ARMING = ("takeoff", "hover", "landing_test", "lemniscate")
@@ -55,17 +55,23 @@ class ControllerConfig:
     control: ControlConfig = field(default_factory=ControlConfig)
     mission: str = "hover"
     missions: MissionConfig = field(default_factory=MissionConfig)
-    omega_o_rps: float = 15.0  # the local ESO's bandwidth
+    omega_o_rps: float = OMEGA_O_RPS  # the local ESO's bandwidth
     stale_timeout_s: float = 0.06
     stale_samples: int = 3
     warmup_ticks: int = 25
 
 
+def gain_values(control: ControlConfig) -> dict[str, float]:
+    """``control``'s gains as the controller's live parameters (x and y share theirs)."""
+    return {"kp_xy": control.kp[0], "kd_xy": control.kd[0], "kp_z": control.kp[2], "kd_z": control.kd[2]}
+
+
+_GAINS = gain_values(ControlConfig())
 CONTROLLER_PARAMS = (
-    Param("kp_xy", 6.0, float, "horizontal position gain", "1/s²", lo=0.1, hi=50.0),
-    Param("kd_xy", 4.5, float, "horizontal velocity gain", "1/s", lo=0.1, hi=30.0),
-    Param("kp_z", 10.0, float, "altitude position gain", "1/s²", lo=0.1, hi=50.0),
-    Param("kd_z", 6.0, float, "altitude velocity gain", "1/s", lo=0.1, hi=30.0),
+    Param("kp_xy", _GAINS["kp_xy"], float, "horizontal position gain", "1/s²", lo=0.1, hi=50.0),
+    Param("kd_xy", _GAINS["kd_xy"], float, "horizontal velocity gain", "1/s", lo=0.1, hi=30.0),
+    Param("kp_z", _GAINS["kp_z"], float, "altitude position gain", "1/s²", lo=0.1, hi=50.0),
+    Param("kd_z", _GAINS["kd_z"], float, "altitude velocity gain", "1/s", lo=0.1, hi=30.0),
 )
 
 
@@ -188,7 +194,7 @@ class ControllerCore:
         if est.seq < self._last_stepped:
             return []
         self._estimates[est.seq] = est
-        for old in [s for s in self._estimates if s < est.seq - _KEEP]:
+        for old in [s for s in self._estimates if s < est.seq - KEEP_SAMPLES]:
             del self._estimates[old]
         if self.using_local and est.warm_ticks >= self.config.warmup_ticks:
             self.using_local = False

@@ -58,19 +58,20 @@ from typing import Callable
 
 import numpy as np
 
+from flight import KEEP_SAMPLES
 from neso.certificate import FlightCertificate, flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
-from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig
+from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.features import FeatureBuilder
 from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
 from neso.netfile import NetworkFileError, load_network
 from neso.network import LipschitzMLP
+from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS, PATHWAYS
 from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 DEFAULT_NETWORK = "networks/base.safetensors"
-_KEEP = 64
 SHADOW_WINDOW = 250  # samples: 5 s at 50 Hz
 MAX_NETWORK_FILE_BYTES = 10_000_000
 PRIOR_PATHWAYS = ("neural_eso", "nn")  # pathways that fly the network
@@ -86,8 +87,8 @@ class EstimatorConfig:
     network: str = DEFAULT_NETWORK
     network_dir: str = ""
     pathway: str = "neural_eso"
-    omega_o_rps: float = 15.0
-    dt_s: float = 0.02
+    omega_o_rps: float = OMEGA_O_RPS
+    dt_s: float = LOOP_PERIOD_S
     lockstep: bool = False
     allow_uncertified: bool = False
     canary: CanaryConfig = field(default_factory=CanaryConfig)
@@ -342,7 +343,7 @@ class EstimatorCore:
         applied = AppliedControl(acc_cmd_enu_mps2=np.array(sp.acc_cmd_enu_mps2), thrust_n=sp.thrust_n)
         self._applied[sp.seq] = applied
         self._latest_applied = applied
-        for old in [s for s in self._applied if s < sp.seq - _KEEP]:
+        for old in [s for s in self._applied if s < sp.seq - KEEP_SAMPLES]:
             del self._applied[old]
         out = []
         while self._waiting and self._waiting[0].seq - 1 in self._applied:
@@ -352,7 +353,7 @@ class EstimatorCore:
     def on_reference(self, ref: ReferenceMsg) -> None:
         """The controller's reference for sample ``seq``: the tracking error feeds the canary."""
         z = self._meas_z.pop(ref.seq, None)
-        for old in [s for s in self._meas_z if s < ref.seq - _KEEP]:
+        for old in [s for s in self._meas_z if s < ref.seq - KEEP_SAMPLES]:
             del self._meas_z[old]
         segment, run = self._segment
         if ref.segment != segment:

@@ -30,7 +30,7 @@ import numpy as np
 
 from neso.control import ControlConfig, PositionController
 from neso.rotations import euler_zyx_from_world_from_body
-from neso.types import AttitudeSetpoint
+from neso.types import LOOP_RATE_HZ, AttitudeSetpoint
 from runtime.schema import SetpointMsg, StateMsg, TruthMsg, vec
 
 # mocap frame → ENU rotations: p_enu = M @ p_mocap
@@ -58,7 +58,7 @@ class SourceConfig:
     backend: str = "sim"  # "sim" or "mocap"
     scenario: str = "nominal_landing"
     seed: int = 1
-    rate_hz: float = 50.0
+    rate_hz: float = LOOP_RATE_HZ
     start: str = "scenario"  # "scenario": the scenario's start pose; "ground": on the floor below it
     lockstep: bool = False
     duration_s: float = 0.0  # 0: until stopped

@@ -18,7 +18,7 @@ import numpy as np
 
 from neso.estimator import AppliedControl
 from neso.rotations import euler_zyx_from_world_from_body, world_from_body_zyx
-from neso.types import AttitudeSetpoint, Reference, StateMeasurement, VehicleModel
+from neso.types import LOOP_PERIOD_S, AttitudeSetpoint, Reference, StateMeasurement, VehicleModel
 
 
 @dataclass(frozen=True, slots=True)
@@ -31,7 +31,7 @@ class ControlConfig:
 
     kp: tuple[float, float, float] = (6.0, 6.0, 10.0)
     kd: tuple[float, float, float] = (4.5, 4.5, 6.0)
-    dt_s: float = 0.02
+    dt_s: float = LOOP_PERIOD_S
     force_rate_limit_nps: float = 40.0
     max_tilt_rad: float = math.radians(35.0)
     min_thrust_fraction: float = 0.1

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS
+
 DISCRETISATIONS = ("exact", "euler")
 
 
@@ -75,8 +77,8 @@ def error_dynamics(omega_o_rps: float, dt_s: float, discretisation: str = "exact
 class EsoConfig:
     """``omega_o_rps`` observer bandwidth (rad/s); ``dt_s`` sample period (s)."""
 
-    omega_o_rps: float = 15.0
-    dt_s: float = 0.02
+    omega_o_rps: float = OMEGA_O_RPS
+    dt_s: float = LOOP_PERIOD_S
     discretisation: str = "exact"
 
     def __post_init__(self) -> None:

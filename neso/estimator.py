@@ -19,9 +19,8 @@ import numpy as np
 from neso.eso import EsoConfig, ExtendedStateObserver, transition_matrix
 from neso.features import FeatureBuilder
 from neso.network import LipschitzMLP
-from neso.types import StateMeasurement
+from neso.types import PATHWAYS, StateMeasurement
 
-PATHWAYS = ("neural_eso", "eso", "nn", "none")
 _USES_ESO = {"neural_eso": True, "eso": True, "nn": False, "none": False}
 _USES_PRIOR = {"neural_eso": True, "eso": False, "nn": True, "none": False}
 

@@ -11,6 +11,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 GRAVITY_MPS2 = 9.81
+# The loop the paper flies, and every service's default: each config takes these, nothing restates them.
+LOOP_RATE_HZ = 50.0  # control and estimation rate
+LOOP_PERIOD_S = 1.0 / LOOP_RATE_HZ
+OMEGA_O_RPS = 15.0  # the ESO's bandwidth (rad/s)
+PATHWAYS = ("neural_eso", "eso", "nn", "none")  # which parts make f̂ (neso.estimator)
 
 
 @dataclass(frozen=True, slots=True)

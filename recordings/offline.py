@@ -13,6 +13,7 @@ from typing import Callable
 
 import numpy as np
 
+from neso.types import LOOP_PERIOD_S
 from runtime.schema import EstimateMsg, SetpointMsg, StateMsg
 
 GAP_PERIODS = 5.0
@@ -29,7 +30,7 @@ def split_at_gaps(t_s, gap_periods: float = GAP_PERIODS) -> list[slice]:
     return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def sample_period_s(t_s, default: float = 0.02) -> float:
+def sample_period_s(t_s, default: float = LOOP_PERIOD_S) -> float:
     """The median step of ``t_s`` (s), ``default`` with fewer than two samples."""
     t_s = np.asarray(t_s, dtype=float)
     return float(np.median(np.diff(t_s))) if len(t_s) > 1 else default

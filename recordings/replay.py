@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neso.types import OMEGA_O_RPS
 from recordings.offline import run_estimator, sample_period_s
 from recordings.reader import Recording, RecordingError, read_recording, rerun_cli
 from runtime.graph import OUTSIDERS
@@ -217,7 +218,7 @@ def what_if(rec: Recording, change: WhatIf, *, skip_s: float = 0.5) -> Compariso
     dt = sample_period_s([m.t_s for m in states])
     pathway = change.pathway or recorded.get("pathway") or flown_pathway
     config = EstimatorConfig(network=change.network if change.network is not None else DEFAULT_NETWORK,
-                             pathway=pathway, omega_o_rps=change.omega_o_rps or 15.0, dt_s=dt)
+                             pathway=pathway, omega_o_rps=change.omega_o_rps or OMEGA_O_RPS, dt_s=dt)
     network, source = load_flown_network(config.network)
     choice = NetworkChoice(network, source, config.network_dir)
     loaded_id = network.metadata.get("id", "unnamed") if network is not None else "none"

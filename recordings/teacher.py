@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from neso.types import OMEGA_O_RPS
 from recordings.offline import GAP_PERIODS, run_estimator
 from recordings.reader import Recording, RecordingError
 
@@ -71,7 +72,7 @@ def _on_ground(rec: Recording, vehicle: str | None, seq: np.ndarray, stamp: np.n
     return on_ground
 
 
-def eso_teacher(rec: Recording, *, omega_o_rps: float = 15.0, skip_s: float = 0.5, vehicle: str | None = None,
+def eso_teacher(rec: Recording, *, omega_o_rps: float = OMEGA_O_RPS, skip_s: float = 0.5, vehicle: str | None = None,
                 gap_periods: float = GAP_PERIODS) -> TeacherRun:
     """The ESO (pathway ``eso``, observer bandwidth ``omega_o_rps``) over ``rec``'s states and
     setpoints; :class:`RecordingError` if it has no states or no setpoints."""

@@ -44,14 +44,13 @@ from typing import Any, Callable, ClassVar
 import msgpack
 import numpy as np
 
-from neso.types import StateMeasurement
+from neso.types import PATHWAYS, StateMeasurement
 
 SCHEMA_VERSION = 1
 ROOT = "neso"
 MAX_PAYLOAD_BYTES = 1 << 20
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
-PATHWAYS = ("neural_eso", "eso", "nn", "none")  # mirrors neso.estimator.PATHWAYS (checked by a test)
 ESTIMATE_SOURCES = ("estimator", "local_eso", "px4")  # px4: PX4's own controller (a flight imported from its log)
 STATE_SOURCES = ("sim", "mocap", "replay", "px4")  # px4: PX4's own estimate (EKF2), imported from its log
 EVENT_LEVELS = ("info", "warning", "error")

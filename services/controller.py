@@ -11,7 +11,7 @@ import argparse
 import time
 from dataclasses import replace
 
-from flight.controller import CONTROLLER_PARAMS, ControllerConfig, ControllerCore
+from flight.controller import CONTROLLER_PARAMS, ControllerConfig, ControllerCore, gain_values
 from flight.mission import COMMANDS
 from neso.control import ControlConfig
 from runtime.params import ParamSet
@@ -40,9 +40,7 @@ def run(args, bus) -> int:
 
     config = config_from_args(args)
     core = ControllerCore(config, clock=time.monotonic)
-    c = config.control
-    params = ParamSet(CONTROLLER_PARAMS, {"kp_xy": c.kp[0], "kd_xy": c.kd[0], "kp_z": c.kp[2], "kd_z": c.kd[2]},
-                      check=core.check_gains, prepare=core.prepare_gains)
+    params = ParamSet(CONTROLLER_PARAMS, gain_values(config.control), check=core.check_gains, prepare=core.prepare_gains)
     node = Node("controller", vehicle=args.vehicle, bus=bus, config=config, params=params)
     put_setpoint, put_reference = node.publisher("setpoint"), node.publisher("reference")
 

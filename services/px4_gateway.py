@@ -36,7 +36,7 @@ import time
 from dataclasses import dataclass
 
 from neso.frames import attitude_enu_from_ned, attitude_ned_from_enu, quat_ned_from_enu_euler, tilt_rad
-from neso.types import GRAVITY_MPS2
+from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
 from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
 
 COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
@@ -167,7 +167,7 @@ class GatewayCore:
             if now_s >= self._calibration_end_s:
                 self._finish_calibration()
         elif self.config.learn_hover and 0.05 < sample < 0.95:
-            dt = 1.0 / 50.0
+            dt = LOOP_PERIOD_S  # one setpoint per loop period
             self.hover_thrust_norm += (sample - self.hover_thrust_norm) * dt / self.config.hover_tau_s
 
     def start_calibration(self, now_s: float) -> tuple[bool, str]:

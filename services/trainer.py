@@ -35,12 +35,12 @@ import argparse
 import glob
 import os
 import queue
-import threading
 import time
 from dataclasses import dataclass, field
 
 from neso.control import ControlConfig
 from neso.learning import LABELS
+from neso.types import OMEGA_O_RPS
 from runtime.schema import NetworkMsg
 
 MODES = ("tdr", "base")
@@ -55,7 +55,7 @@ class TrainerConfig:
     recordings_dir: str = "out/recordings"
     kp: float = ControlConfig().kp[2]
     kd: float = ControlConfig().kd[2]
-    omega_o_rps: float = 15.0
+    omega_o_rps: float = OMEGA_O_RPS
     epochs: int = 100
 
 

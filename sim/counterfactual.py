@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neso.control import ControlConfig, PositionController
+from neso.control import ControlConfig
 from neso.features import ThrustLag
 from neso.rotations import world_from_body_zyx
-from neso.types import AttitudeSetpoint, Reference, StateMeasurement, VehicleModel
+from neso.types import LOOP_PERIOD_S, AttitudeSetpoint, Reference, StateMeasurement, VehicleModel
 from sim.runner import FlightLog, fly
 
 
@@ -43,7 +43,7 @@ class RecordedConditions:
     vel0_enu_mps: np.ndarray
     thrust0_n: float
     lag: ThrustLag
-    dt_s: float = 0.02
+    dt_s: float = LOOP_PERIOD_S
 
     @property
     def duration_s(self) -> float:

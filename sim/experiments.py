@@ -29,6 +29,7 @@ from neso.methods import build_estimator
 from neso.metrics import rmse_m, settling_time_s, steady_state_abs_error_m, summarise
 from neso.network import LipschitzMLP
 from neso.trajectories import Landing, Lemniscate
+from neso.types import OMEGA_O_RPS
 from sim.runner import FlightLog, fly
 from sim.scenarios import make_scenario
 
@@ -47,7 +48,7 @@ class PaperConfig:
 
     trials: int = 5
     recipes: tuple[str, ...] = (DEFAULT_RECIPE, "paper")
-    omega_o_rps: float = 15.0
+    omega_o_rps: float = OMEGA_O_RPS
     control: ControlConfig = field(default_factory=ControlConfig)
     teacher_flights: int = 3
     tdr_cycles: int = 5  # 5 cycles × 6 s = the paper's 30 s of OOD data

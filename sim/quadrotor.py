@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neso.rotations import world_from_body_zyx
-from neso.types import GRAVITY_MPS2, AttitudeSetpoint, StateMeasurement
+from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S, AttitudeSetpoint, StateMeasurement
 from sim.ground_effect import ExponentialGroundEffect, GroundEffectModel, NoGroundEffect
 from sim.mocap import MocapConfig, MocapFilter, MocapSample
 from sim.rotor_aero import (
@@ -159,7 +159,7 @@ class SimConfig:
     params: QuadrotorParams = field(default_factory=QuadrotorParams)
     inner_loop: InnerLoopParams = field(default_factory=InnerLoopParams)
     dt_s: float = 0.002
-    control_period_s: float = 0.02
+    control_period_s: float = LOOP_PERIOD_S
     command_delay_s: float = 0.010
     ground_effect: GroundEffectModel = field(default_factory=ExponentialGroundEffect)
     ground_effect_washout: GroundEffectWashout = field(default_factory=NoWashout)

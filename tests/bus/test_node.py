@@ -15,6 +15,7 @@ import msgpack
 import pytest
 import zenoh
 
+from neso.types import OMEGA_O_RPS
 from runtime.client import command, get_params, set_params
 from runtime.node import Node
 from runtime.params import ParamSet
@@ -86,7 +87,7 @@ def wait_until(condition, timeout_s: float = 5.0, what: str = "condition"):
 
 def test_parameters_are_set_or_refused_with_the_reason_and_a_refusal_changes_nothing(estimator, client):
     assert get_params(client, KEYS, "estimator").values == {"pathway": "neural_eso", "lipschitz_bound": 1.0,
-                                                            "omega_o_rps": 15.0}
+                                                            "omega_o_rps": OMEGA_O_RPS}
     reply = set_params(client, KEYS, "estimator", {"pathway": "eso", "lipschitz_bound": 0.5})
     assert reply.ok and reply.values["pathway"] == "eso" and reply.values["lipschitz_bound"] == 0.5
     for values, reason in (({"lipschitz_bound": 50.0}, "above"), ({"pathway": "magic"}, "pathway must be one of"),

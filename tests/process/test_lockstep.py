@@ -8,6 +8,7 @@ from neso.estimator import NeuralEsoConfig
 from neso.methods import build_estimator
 from neso.netfile import load_network
 from neso.trajectories import Landing
+from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS
 from runtime.probe import Probe
 from sim.runner import fly
 from sim.scenarios import make_scenario
@@ -33,7 +34,7 @@ def test_lockstep_processes_reproduce_the_in_process_runner():
         truth, setpoints = probe.get("truth"), probe.get("setpoint")
     assert proc.returncode == 0, out
 
-    estimator = build_estimator("neural_eso", NeuralEsoConfig(eso=EsoConfig(omega_o_rps=15.0, dt_s=0.02)),
+    estimator = build_estimator("neural_eso", NeuralEsoConfig(eso=EsoConfig(omega_o_rps=OMEGA_O_RPS, dt_s=LOOP_PERIOD_S)),
                                 {"base": load_network(NETWORK)})
     log = fly(sim_config=make_scenario("nominal_landing"), estimator=estimator, trajectory=Landing(end_height_m=0.1),
               seed=seed, duration_s=duration_s)

@@ -14,11 +14,12 @@ from neso.estimator import NeuralEsoConfig
 from neso.methods import METHODS, build_estimator
 from neso.trajectories import Landing
 from neso.features import DEFAULT_FEATURE_SET, ThrustLag
+from neso.types import OMEGA_O_RPS
 from sim.experiments import FlightTask, run_flight, training_pairs
 from sim.runner import fly
 from sim.scenarios import make_scenario
 
-EST = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=15.0))
+EST = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=OMEGA_O_RPS))
 
 
 def _landing(method, seed, networks=None):

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from neso.types import OMEGA_O_RPS
 from dashboard.model import (STATUS_SLOTS, CertificateShown, FleetModel, StatusItem, VehicleModel, certificate_shown,
                              status_line)
 from dashboard.service import decode_into
@@ -104,7 +105,7 @@ def test_the_certificate_shown_is_the_estimators_verdict_not_the_pages():
 
     v = VehicleModel("uav1")
     assert v.certificate() is None and math.isnan(v.lipschitz()[0])  # nothing reported yet: nothing claimed
-    verdict = flight_certificate(3.2, kp=10.0, kd=6.0, omega_o=15.0)
+    verdict = flight_certificate(3.2, kp=10.0, kd=6.0, omega_o=OMEGA_O_RPS)
     v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a", "lipschitz_norm": 0.5, "lipschitz_phys": 3.2},
                                    candidate={}, previous={}, shadow_error_rms_mps2=-1.0,
                                    certificate=verdict.to_dict()), 0.0)

@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from neso.eso import EsoConfig, ExtendedStateObserver, error_dynamics, exact_gains, input_matrix, transition_matrix
+from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS
 
 
-@pytest.mark.parametrize("omega", [5.0, 15.0, 20.0, 40.0])
+@pytest.mark.parametrize("omega", [5.0, OMEGA_O_RPS, 20.0, 40.0])
 def test_exact_discretisation_places_triple_pole_at_exp_minus_omega_dt(omega):
     dt = 0.02
     poles = np.linalg.eigvals(error_dynamics(omega, dt, "exact"))
@@ -35,7 +36,7 @@ def _simulate_axis(observer, f_true, steps, dt, u=0.0):
 @pytest.mark.parametrize("disc", ["exact", "euler"])
 def test_constant_disturbance_is_estimated_with_zero_steady_state_error(disc):
     dt = 0.02
-    obs = ExtendedStateObserver(EsoConfig(omega_o_rps=15.0, dt_s=dt, discretisation=disc))
+    obs = ExtendedStateObserver(EsoConfig(omega_o_rps=OMEGA_O_RPS, dt_s=dt, discretisation=disc))
     obs.reset(np.zeros(3))
     f_true = np.array([0.3, -1.2, 2.5])
     x = _simulate_axis(obs, f_true, steps=400, dt=dt, u=0.7)
@@ -46,7 +47,7 @@ def test_constant_disturbance_is_estimated_with_zero_steady_state_error(disc):
 
 
 def test_error_decays_at_the_designed_rate():
-    dt, omega = 0.02, 15.0
+    dt, omega = LOOP_PERIOD_S, OMEGA_O_RPS
     obs = ExtendedStateObserver(EsoConfig(omega_o_rps=omega, dt_s=dt))
     obs.reset(np.zeros(3))
     f_true = np.ones(3)

@@ -7,6 +7,7 @@ import pytest
 from neso.eso import EsoConfig
 from neso.estimator import PATHWAYS, AppliedControl, NeuralESO, NeuralEsoConfig, NeuralObserver
 from neso.eso import input_matrix, transition_matrix
+from neso.types import OMEGA_O_RPS
 from tests.helpers import measurement, random_network
 
 DT = 0.02
@@ -117,7 +118,7 @@ def test_wrong_network_shape_and_pathway_are_refused():
 def test_neural_observer_has_no_online_correction():
     """With a network that is simply wrong, the ESO-based estimators converge, the neural observer does not."""
     net = random_network(7, bound=0.3)
-    cfg = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=15.0, dt_s=DT))
+    cfg = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=OMEGA_O_RPS, dt_s=DT))
     est_nobs, f = run(NeuralObserver(cfg, net), 300)[-1]
     est_neso, f_neso = run(NeuralESO(cfg, net), 300)[-1]
     assert abs(est_neso.f_hat[2] - f_neso[2]) < 1e-3

@@ -11,12 +11,13 @@ from flight.hotswap import gate
 from neso.netfile import load_network
 from neso.certificate import max_certified_lipschitz_best
 from neso.learning import RECIPES
+from neso.types import OMEGA_O_RPS
 from services import registry
 from services.trainer import Job, TrainerConfig, parse_job, train_job
 from tests.helpers import BASE, EXAMPLE, flight_messages, write_recording
 
 ACTIVE = {"id": "base", "path": BASE, "certified_phys": load_network(BASE).certified_lipschitz_physical()}
-FLOWN = {"kp": 10.0, "kd": 6.0, "omega_o": 15.0}  # as NetworkMsg.certificate reports the gains flown
+FLOWN = {"kp": 10.0, "kd": 6.0, "omega_o": OMEGA_O_RPS}  # as NetworkMsg.certificate reports the gains flown
 
 
 @pytest.fixture
