@@ -7,11 +7,13 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
+    from services.registry import DEFAULT_ROOT
+
     p = subparsers.add_parser("networks", help="the shipped networks and the network registry")
     sub = p.add_subparsers(dest="networks_command", required=True)
     lp = sub.add_parser("list", help="shipped networks (networks/), then every stored one (registry), oldest first")
     lp.add_argument("--shipped", default="networks", help="folder of the shipped networks (default networks)")
-    lp.add_argument("--registry", default="networks/registry")
+    lp.add_argument("--registry", default=DEFAULT_ROOT, help="network registry root (default %(default)s)")
     lp.add_argument("--vehicle", default=None, help="only this vehicle's registry networks")
     lp.add_argument("--json", action="store_true")
 

@@ -2,16 +2,17 @@
 data, importing a PX4 log, and exporting a recording as MCAP."""
 from __future__ import annotations
 
-DEFAULT_DIR = "out/recordings"
 IMPORT_DIR = "out/imports"
 
 
 def add_parser(subparsers) -> None:
+    from recordings.layout import RECORDINGS_DIR
+
     p = subparsers.add_parser("recordings", help="list recorded flights, repair one, count its training pairs, "
                                                  "import a PX4 log, export as MCAP")
     sub = p.add_subparsers(dest="action", required=True)
     ls = sub.add_parser("list", help="flight, vehicle, source, duration, pathway, network, size of every .rrd")
-    ls.add_argument("directory", nargs="?", default=DEFAULT_DIR, help=f"folder (or one file) (default {DEFAULT_DIR})")
+    ls.add_argument("directory", nargs="?", default=RECORDINGS_DIR, help=f"folder (or one file) (default {RECORDINGS_DIR})")
     rp = sub.add_parser("repair", help="rewrite files with `rerun rrd optimize` (a crash-cut file gets its footer)")
     rp.add_argument("files", nargs="+")
     ds = sub.add_parser("dataset", help="the training pairs one or more recordings give (no training)")

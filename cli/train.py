@@ -26,6 +26,9 @@ from cli.recordings import IMPORT_DIR, add_import_arguments, import_config
 
 
 def add_parser(subparsers) -> None:
+    from recordings.layout import RECORDINGS_DIR
+    from services.registry import DEFAULT_ROOT
+
     p = subparsers.add_parser("train", help="train a network on recordings (trainer service), offer it, promote it")
     p.add_argument("recordings", nargs="*", help=".rrd files or PX4 logs (.ulg, imported first) "
                                                  "(default: the trainer's newest recording)")
@@ -52,8 +55,8 @@ def add_parser(subparsers) -> None:
     g.add_argument("--network", default=None,
                    help="offline tdr: the network to warm-start from (default the estimator's, "
                         "networks/base.safetensors)")
-    g.add_argument("--registry", default="networks/registry", help="offline: where the network is stored")
-    g.add_argument("--recordings-dir", default="out/recordings",
+    g.add_argument("--registry", default=DEFAULT_ROOT, help="offline: where the network is stored")
+    g.add_argument("--recordings-dir", default=RECORDINGS_DIR,
                    help="offline: where the newest recording is taken from when no FILE is given")
     add_bus_arguments(p)
 

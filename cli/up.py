@@ -7,21 +7,30 @@ from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
 
 
 def add_parser(subparsers) -> None:
+    from dashboard.service import DashboardConfig
+    from flight.controller import ControllerConfig
+    from flight.estimator import EstimatorConfig
     from flight.mission import COMMANDS
+    from flight.source import SourceConfig
+    from neso.types import PATHWAYS
+    from services.recorder import RecorderConfig
+    from services.trainer import TrainerConfig
     from sim.scenarios import SCENARIOS
 
+    src, est, ctl, dash = SourceConfig(), EstimatorConfig(), ControllerConfig(), DashboardConfig()
+
     p = subparsers.add_parser("up", help="start the hub and every service (simulator source) and supervise them")
-    p.add_argument("--scenario", default="nominal_landing", choices=sorted(SCENARIOS))
-    p.add_argument("--mission", default="hover", choices=("idle",) + COMMANDS, help="mission flown from the start")
-    p.add_argument("--start", default="scenario", choices=("scenario", "ground"), help="start pose of the vehicle")
+    p.add_argument("--scenario", default=src.scenario, choices=sorted(SCENARIOS))
+    p.add_argument("--mission", default=ctl.mission, choices=("idle",) + COMMANDS, help="mission flown from the start")
+    p.add_argument("--start", default=src.start, choices=("scenario", "ground"), help="start pose of the vehicle")
     p.add_argument("--lockstep", action="store_true", help="deterministic: the sim waits for each setpoint")
-    p.add_argument("--duration", type=float, default=0.0, help="seconds of flight, then stop (0: until Ctrl-C)")
-    p.add_argument("--rate", type=float, default=50.0, help="control rate Hz")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--network", default=None, help="network file (default: networks/base.safetensors, certified)")
+    p.add_argument("--duration", type=float, default=src.duration_s, help="seconds of flight, then stop (0: until Ctrl-C)")
+    p.add_argument("--rate", type=float, default=src.rate_hz, help="control rate Hz (every service of the loop)")
+    p.add_argument("--seed", type=int, default=src.seed, help="world seed of the first vehicle (the next: +1, …)")
+    p.add_argument("--network", default=None, help=f"network file (default: {est.network}, certified)")
     p.add_argument("--allow-uncertified", action="store_true",
                    help="fly a --network whose stability certificate fails (recorded as an event)")
-    p.add_argument("--pathway", default="neural_eso", choices=("neural_eso", "eso", "nn", "none"))
+    p.add_argument("--pathway", default=est.pathway, choices=PATHWAYS)
     p.add_argument("--name", action="append", default=None, dest="names",
                    help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
     p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink"),
@@ -33,12 +42,12 @@ def add_parser(subparsers) -> None:
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
     p.add_argument("--no-record", dest="record", action="store_false", help="no recorder (default: record every flight)")
-    p.add_argument("--recordings-dir", default="out/recordings", help="where the recorder writes flights")
+    p.add_argument("--recordings-dir", default=RecorderConfig().directory, help="where the recorder writes flights")
     p.add_argument("--no-trainer", action="store_false", dest="trainer", help="do not start the trainer service")
-    p.add_argument("--registry", default="networks/registry", help="where the trainer stores networks")
+    p.add_argument("--registry", default=TrainerConfig().registry, help="where the trainer stores networks")
     p.add_argument("--no-dashboard", action="store_false", dest="dashboard", help="do not start the web dashboard")
-    p.add_argument("--dashboard-host", default="127.0.0.1", help="dashboard address (default loopback only)")
-    p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
+    p.add_argument("--dashboard-host", default=dash.host, help="dashboard address (default loopback only)")
+    p.add_argument("--dashboard-port", type=int, default=dash.port, help="dashboard port (default %(default)s)")
     from cli.busargs import add_secure_arguments
 
     add_secure_arguments(p.add_argument_group("security"))

@@ -15,9 +15,11 @@ import argparse
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Callable
 
 from runtime.graph import role as graph_role
+from runtime.options import add_options, config_from_options, option
 from runtime.schema import EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError, TOPICS, vehicle_of
 
 Reply = Callable[[bool, str], None]
@@ -26,6 +28,15 @@ PER_SERVICE = {"health": HealthMsg, "params": ParamStateMsg, "event": EventMsg}
 
 
 PORT_RETRY_S = 5.0
+
+
+@dataclass(frozen=True)
+class DashboardConfig:
+    host: str = option("127.0.0.1", help="address to serve on (loopback only unless you mean to share it)")
+    port: int = option(8080, help="port to serve on")
+    ui_rate_hz: float = option(20.0, flag="--ui-rate", unit="Hz", help="pose updates per second (plots at half)")
+    window_s: float = option(10.0, flag="--window", unit="s", help="time shown in plots and figures")
+    nice: int = option(10, help="CPU niceness added at start: the page must never slow the control loop")
 
 
 class PortTaken(OSError):
@@ -101,18 +112,18 @@ def decode_into(model, kind: str, key: str, payload: bytes, received_s: float) -
 class Dashboard:
     """The running dashboard: observer → model → view, plus the bus facade for controls."""
 
-    def __init__(self, bus, *, host: str, port: int, ui_rate_hz: float = 20.0, window_s: float = 10.0,
-                 default_vehicle: str = "uav1") -> None:
+    def __init__(self, bus, config: DashboardConfig, *, default_vehicle: str = "uav1") -> None:
         import viser
 
         from dashboard.model import FleetModel
         from dashboard.view import DashboardView
         from runtime.observer import Observer
 
-        self.model = FleetModel(window_s=window_s)
+        self.model = FleetModel(window_s=config.window_s)
         self.lock = threading.Lock()
         self.observer = Observer(bus)
         self.facade = BusFacade(self.observer.session)
+        host, port = config.host, config.port
         self.server = viser.ViserServer(host=host, port=port, label="Neural-ESO", verbose=False)
         if self.server.get_port() != port:
             actual = self.server.get_port()
@@ -122,7 +133,7 @@ class Dashboard:
             raise PortTaken(f"port {port} is taken (viser would have moved to {actual}): choose --port")
         self.view = DashboardView(self.server, self.model, self.lock, self.facade,
                                   default_vehicle=default_vehicle)
-        self.period_s = 1.0 / ui_rate_hz
+        self.period_s = 1.0 / config.ui_rate_hz
         self._seeded: set[tuple[str, str]] = set()
         self._stop = threading.Event()
         for topic in WATCHED:
@@ -183,20 +194,16 @@ class Dashboard:
 
 # -- service entry points ---------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback only)")
-    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
-    parser.add_argument("--ui-rate", type=float, default=20.0, help="pose updates per second (plots at half)")
-    parser.add_argument("--window", type=float, default=10.0, help="seconds shown in plots and figures")
-    parser.add_argument("--nice", type=int, default=10,
-                        help="CPU niceness added at start (default 10): the page must never slow the control loop")
+    add_options(parser, DashboardConfig)
 
 
 def run(args, bus) -> int:
     import os
     import signal
 
-    if args.nice:
-        os.nice(args.nice)
+    config = config_from_options(DashboardConfig, args)
+    if config.nice:
+        os.nice(config.nice)
     stopping = threading.Event()
     holder: list[Dashboard] = []
 
@@ -208,8 +215,7 @@ def run(args, bus) -> int:
         signal.signal(sig, on_signal)
     while not stopping.is_set():
         try:
-            dash = Dashboard(bus, host=args.host, port=args.port, ui_rate_hz=args.ui_rate, window_s=args.window,
-                             default_vehicle=args.vehicle)
+            dash = Dashboard(bus, config, default_vehicle=args.vehicle)
             break
         except PortTaken as exc:  # wait for it rather than crash-loop: the flight never depends on the page
             print(f"[dashboard] {exc}; trying again in {PORT_RETRY_S:g} s", flush=True)
@@ -219,7 +225,7 @@ def run(args, bus) -> int:
     holder.append(dash)
     if stopping.is_set():
         dash.stop()
-    print(f"[dashboard] serving http://{args.host}:{args.port}", flush=True)
+    print(f"[dashboard] serving http://{config.host}:{config.port}", flush=True)
     try:
         dash.run()
         return 0

@@ -34,6 +34,7 @@ from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from flight.mission import COMMANDS, Mission, MissionConfig
 from neso.types import OMEGA_O_RPS, AttitudeSetpoint, StateMeasurement
+from runtime.options import option
 from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
@@ -52,11 +53,15 @@ class ControllerConfig:
     may wake late. ``warmup_ticks``: samples a (re)started estimator must have run before its
     estimates are used again."""
 
-    control: ControlConfig = field(default_factory=ControlConfig)
-    mission: str = "hover"
+    control: ControlConfig = option(default_factory=ControlConfig, flag="--rate", unit="Hz",
+                                    cli=(lambda c: 1.0 / c.dt_s, lambda hz: replace(ControlConfig(), dt_s=1.0 / hz)),
+                                    help="control rate (must match the source's)")
+    mission: str = option("hover", choices=("idle",) + COMMANDS, help="mission started with the flight")
     missions: MissionConfig = field(default_factory=MissionConfig)
-    omega_o_rps: float = OMEGA_O_RPS  # the local ESO's bandwidth
-    stale_timeout_s: float = 0.06
+    omega_o_rps: float = option(OMEGA_O_RPS, flag="--omega-o", unit="rad/s", help="the local ESO's bandwidth")
+    stale_periods: float = option(3.0, unit="periods", help="periods without an answered sample before the local "
+                                                            "ESO flies (at least 20 ms; lockstep: 2 s)")
+    stale_timeout_s: float = 0.06  # stale_periods at the rate, as config_from_args derives it
     stale_samples: int = 3
     warmup_ticks: int = 25
 

@@ -52,7 +52,7 @@ rollback never undoes the first.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -68,6 +68,7 @@ from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
 from neso.netfile import NetworkFileError, load_network
 from neso.network import LipschitzMLP
 from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS, PATHWAYS
+from runtime.options import option, rate_of_period
 from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
@@ -84,14 +85,16 @@ class EstimatorConfig:
     network's own directory). ``allow_uncertified``: fly a start-up network whose certificate
     fails. ``canary``: the rollback watch after a promotion."""
 
-    network: str = DEFAULT_NETWORK
-    network_dir: str = ""
-    pathway: str = "neural_eso"
-    omega_o_rps: float = OMEGA_O_RPS
-    dt_s: float = LOOP_PERIOD_S
+    network: str = option(DEFAULT_NETWORK, help="network file flown ('' for none)")
+    network_dir: str = option("", help="networks trained for other L_N ('': the network's own directory)")
+    pathway: str = option("neural_eso", help="which pathways make f̂", choices=PATHWAYS)
+    omega_o_rps: float = option(OMEGA_O_RPS, flag="--omega-o", unit="rad/s", help="observer bandwidth")
+    dt_s: float = option(LOOP_PERIOD_S, flag="--rate", unit="Hz", cli=rate_of_period(),
+                         help="sample rate (must match the source's)")
     lockstep: bool = False
-    allow_uncertified: bool = False
-    canary: CanaryConfig = field(default_factory=CanaryConfig)
+    allow_uncertified: bool = option(False, help="fly a start-up network whose stability certificate fails "
+                                                 "(recorded as an event)")
+    canary: CanaryConfig = option(default_factory=CanaryConfig, nested=True)
 
 
 def estimator_params(config: EstimatorConfig, bound_phys: float) -> tuple[Param, ...]:

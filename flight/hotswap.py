@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from neso.netfile import NetworkFileError, network_from_bytes
 from neso.network import LipschitzMLP
+from runtime.options import option
 
 CERT_RTOL = 1e-6
 
@@ -107,8 +108,10 @@ class CanaryConfig:
     exceeds ``trip_factor`` times the RMS before.
     """
 
-    window_samples: int = 500
-    margin: float = 0.10
+    window_samples: int = option(500, flag="--canary-window", unit="samples",
+                                 help="samples after a promotion that decide the canary")
+    margin: float = option(0.10, flag="--canary-margin",
+                           help="roll back when tracking is worse by more than this fraction")
     confidence_z: float = 2.33
     blocks: int = 5
     min_rms_m: float = 0.002

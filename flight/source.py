@@ -23,15 +23,17 @@ then go to the vehicle (the PX4 gateway), not to the source.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from neso.control import ControlConfig, PositionController
 from neso.rotations import euler_zyx_from_world_from_body
 from neso.types import LOOP_RATE_HZ, AttitudeSetpoint
+from runtime.options import comma_list, option
 from runtime.schema import SetpointMsg, StateMsg, TruthMsg, vec
+from sim.scenarios import SCENARIOS
 
 # mocap frame → ENU rotations: p_enu = M @ p_mocap
 FRAMES: dict[str, tuple[tuple[float, ...], ...]] = {
@@ -46,28 +48,34 @@ class MocapConfig:
     """``type``/``hostname``: passed to ``motioncapture.connect``. ``rigid_body``: the vehicle's
     name in the mocap software. ``frame``: a name in :data:`FRAMES` or 9 numbers (row-major M)."""
 
-    type: str = "optitrack"
-    hostname: str = "127.0.0.1"
-    rigid_body: str = "uav1"
-    frame: str = "y_up"
+    type: str = option("optitrack", flag="--mocap-type",
+                       help="motioncapture backend (optitrack, vicon, qualisys, vrpn, mock...)")
+    hostname: str = option("127.0.0.1", flag="--mocap-host", help="the mocap system's address")
+    rigid_body: str = option("uav1", help="the vehicle's rigid-body name in the mocap software")
+    frame: str = option("y_up", help=f"mocap frame: {sorted(FRAMES)} or 9 numbers (ENU from mocap, row-major)")
     vel_cutoff_hz: float = 15.0
 
 
 @dataclass(frozen=True)
 class SourceConfig:
-    backend: str = "sim"  # "sim" or "mocap"
-    scenario: str = "nominal_landing"
-    seed: int = 1
-    rate_hz: float = LOOP_RATE_HZ
-    start: str = "scenario"  # "scenario": the scenario's start pose; "ground": on the floor below it
+    backend: str = option("sim", choices=("sim", "mocap"), help="where states come from")
+    scenario: str = option("nominal_landing", choices=tuple(sorted(SCENARIOS)), help="the simulated world")
+    seed: int = option(1, help="the simulated world's random seed")
+    rate_hz: float = option(LOOP_RATE_HZ, flag="--rate", unit="Hz", help="control rate")
+    start: str = option("scenario", choices=("scenario", "ground"),
+                        help="scenario: the scenario's start pose; ground: on the floor below it")
     lockstep: bool = False
-    duration_s: float = 0.0  # 0: until stopped
-    wait_for: tuple[str, ...] = ("estimator", "controller")
+    duration_s: float = option(0.0, flag="--duration", unit="s", help="seconds of flight, 0 = until stopped")
+    wait_for: tuple[str, ...] = option(("estimator", "controller"), cli=comma_list(),
+                                       help="services whose liveliness a lockstep run waits for before the first sample")
     lockstep_resend_s: float = 1.0
-    mocap: MocapConfig = field(default_factory=MocapConfig)
-    link: str = "direct"  # "direct": bus setpoints act; "mavlink": a MAVLink PX4 stand-in takes them (sim/mavlink_vehicle.py)
-    mavlink_out: str = "udpout:127.0.0.1:14540"
-    mavlink_log: str = ""
+    mocap: MocapConfig = option(default_factory=MocapConfig, nested=True)
+    link: str = option("direct", choices=("direct", "mavlink"),
+                       help="how setpoints reach the simulated vehicle: direct (bus setpoints) or mavlink (it presents "
+                            "itself as a PX4 on --mavlink-out; the px4_gateway flies it, sim/mavlink_vehicle.py)")
+    mavlink_out: str = option("udpout:127.0.0.1:14540",
+                              help="where the simulated PX4 sends its MAVLink (the gateway's udpin address)")
+    mavlink_log: str = option("", help="JSON-lines log of every MAVLink command/setpoint received")
 
 
 class SimSource:

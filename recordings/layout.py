@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 from runtime.schema import ROOT, TOPICS, EventMsg, HealthMsg, Message, ParamStateMsg
 
+RECORDINGS_DIR = "out/recordings"  # where the recorder writes flights and everything else looks for them
+
 APPLICATION_ID = "neso"
 SAMPLED_TOPICS = ("state", "truth", "estimate", "setpoint", "reference")  # messages with seq and t_s
 # per-service kinds recorded (key neso/<v>/<kind>/<service>) and their message type

@@ -12,27 +12,21 @@ import time
 from dataclasses import replace
 
 from flight.controller import CONTROLLER_PARAMS, ControllerConfig, ControllerCore, gain_values
-from flight.mission import COMMANDS
-from neso.control import ControlConfig
+from runtime.options import add_options, config_from_options
 from runtime.params import ParamSet
 from runtime.schema import EstimateMsg, StateMsg
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mission", default="hover", choices=("idle",) + COMMANDS,
-                        help="mission started with the flight (default hover)")
-    parser.add_argument("--rate", type=float, default=50.0, help="control rate Hz (must match the source)")
-    parser.add_argument("--stale-periods", type=float, default=3.0,
-                        help="periods without an answered sample before the local ESO flies (at least 20 ms)")
-    parser.add_argument("--omega-o", type=float, default=15.0, help="local ESO bandwidth rad/s")
+    add_options(parser, ControllerConfig)
 
 
 def config_from_args(args) -> ControllerConfig:
-    dt = 1.0 / args.rate
+    config = config_from_options(ControllerConfig, args)
+    dt = config.control.dt_s
     # at high rates a few periods are shorter than one scheduling hiccup of a 2-core VM: floor 20 ms
     lockstep = getattr(args, "lockstep", False)
-    stale = 2.0 if lockstep else max(args.stale_periods * dt, 0.02)
-    return ControllerConfig(control=replace(ControlConfig(), dt_s=dt), mission=args.mission, omega_o_rps=args.omega_o,
-                            stale_timeout_s=stale, stale_samples=0 if lockstep else max(1, round(stale / dt)))
+    stale = 2.0 if lockstep else max(config.stale_periods * dt, 0.02)
+    return replace(config, stale_timeout_s=stale, stale_samples=0 if lockstep else max(1, round(stale / dt)))
 
 
 def run(args, bus) -> int:

@@ -14,33 +14,18 @@ from __future__ import annotations
 import argparse
 import time
 
-from flight.estimator import (PATHWAYS, EstimatorConfig, EstimatorCore, NetworkChoice, bound_phys, estimator_params,
+from flight.estimator import (EstimatorConfig, EstimatorCore, NetworkChoice, bound_phys, estimator_params,
                               load_flown_network, startup_network)
-from flight.hotswap import CanaryConfig
 from neso.control import ControlConfig
+from runtime.options import add_options, config_from_options
 from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    d, c = EstimatorConfig(), CanaryConfig()
-    parser.add_argument("--network", default=d.network, help="network file flown ('' for none; default %(default)s)")
-    parser.add_argument("--network-dir", default=d.network_dir,
-                        help="networks trained for other L_N (default: the network's own directory)")
-    parser.add_argument("--pathway", default=d.pathway, choices=PATHWAYS)
-    parser.add_argument("--omega-o", type=float, default=d.omega_o_rps, help="observer bandwidth rad/s")
-    parser.add_argument("--rate", type=float, default=1.0 / d.dt_s, help="sample rate Hz (must match the source)")
-    parser.add_argument("--allow-uncertified", action="store_true",
-                        help="fly a start-up network whose stability certificate fails (recorded as an event)")
-    parser.add_argument("--canary-window", type=int, default=c.window_samples,
-                        help="samples after a promotion that decide the canary (default %(default)s)")
-    parser.add_argument("--canary-margin", type=float, default=c.margin,
-                        help="roll back when tracking is worse by more than this fraction (default %(default)s)")
+    add_options(parser, EstimatorConfig)
 
 
 def config_from_args(args) -> EstimatorConfig:
-    return EstimatorConfig(network=args.network, network_dir=args.network_dir, pathway=args.pathway,
-                           omega_o_rps=args.omega_o, dt_s=1.0 / args.rate, lockstep=getattr(args, "lockstep", False),
-                           allow_uncertified=args.allow_uncertified,
-                           canary=CanaryConfig(window_samples=args.canary_window, margin=args.canary_margin))
+    return config_from_options(EstimatorConfig, args, lockstep=getattr(args, "lockstep", False))
 
 
 def run(args, bus) -> int:

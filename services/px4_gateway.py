@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 from neso.frames import attitude_enu_from_ned, attitude_ned_from_enu, quat_ned_from_enu_euler, tilt_rad
 from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
+from runtime.options import add_options, comma_list, config_from_options, option
 from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
 
 COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
@@ -47,23 +48,29 @@ class GatewayConfig:
     """Units in the names; angles in rad. ``forward_sources``: state sources forwarded to PX4 as
     external vision (``mocap``; ``sim`` too when the simulator stands in for the mocap)."""
 
-    mavlink: str = "udpin://0.0.0.0:14540"
+    mavlink: str = option("udpin://0.0.0.0:14540", help="MAVSDK connection URL of the vehicle (PX4 SITL: "
+                                                        "udpin://0.0.0.0:14540; serial:///dev/ttyACM0:57600)")
     connect_timeout_s: float = 30.0
-    nominal_hover_thrust_norm: float = 0.5
-    hover_thrust_norm: float = 0.5
-    learn_hover: bool = True
+    nominal_hover_thrust_norm: float = option(0.5, flag="--nominal-hover-thrust", unit="0–1",
+                                              help="the hover thrust the controller's thrust_norm assumes (its model)")
+    hover_thrust_norm: float = option(0.5, flag="--hover-thrust", unit="0–1", help="initial hover thrust estimate")
+    learn_hover: bool = option(True, flag="--no-learn-hover", help="keep the hover thrust fixed")
     hover_tau_s: float = 5.0
     learn_min_height_m: float = 0.3
-    max_tilt_rad: float = math.radians(40.0)
+    max_tilt_rad: float = option(math.radians(40.0), flag="--max-tilt-deg", unit="deg", cli=(math.degrees, math.radians),
+                                 help="tilt limit (larger tilts are scaled back, direction kept)")
     thrust_min_norm: float = 0.0
-    thrust_max_norm: float = 0.9
-    stale_hold_s: float = 0.3
-    stale_states: int = 15
-    stale_max_s: float = 1.0
-    land_after_s: float = 3.0
+    thrust_max_norm: float = option(0.9, flag="--thrust-max", unit="0–1", help="thrust clamp")
+    stale_hold_s: float = option(0.3, flag="--stale-hold", unit="s",
+                                 help="without setpoints (with --stale-states states unanswered) before hold")
+    stale_states: int = option(15, unit="samples", help="unanswered states before hold")
+    stale_max_s: float = option(1.0, flag="--stale-max", unit="s", help="without setpoints before hold, states or not")
+    land_after_s: float = option(3.0, flag="--land-after", unit="s", help="in failsafe hold before land")
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
-    forward_sources: tuple[str, ...] = ("mocap",)
+    forward_sources: tuple[str, ...] = option(("mocap",), cli=comma_list(),
+                                              help="state sources forwarded to PX4 as external vision (comma-separated; "
+                                                   "'' none)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -198,30 +205,11 @@ def _scale_tilt(roll: float, pitch: float, max_tilt: float) -> tuple[float, floa
 
 # -- bus adapter ------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mavlink", default="udpin://0.0.0.0:14540",
-                        help="MAVSDK connection URL of the vehicle (PX4 SITL: udpin://0.0.0.0:14540; serial:///dev/ttyACM0:57600)")
-    parser.add_argument("--hover-thrust", type=float, default=0.5, help="initial hover thrust estimate (0–1)")
-    parser.add_argument("--nominal-hover-thrust", type=float, default=0.5,
-                        help="the hover thrust the controller's thrust_norm assumes (its vehicle model)")
-    parser.add_argument("--no-learn-hover", action="store_true", help="keep the hover thrust fixed")
-    parser.add_argument("--max-tilt-deg", type=float, default=40.0)
-    parser.add_argument("--thrust-max", type=float, default=0.9)
-    parser.add_argument("--stale-hold", type=float, default=0.3,
-                        help="seconds without setpoints (with --stale-states states unanswered) before hold")
-    parser.add_argument("--stale-states", type=int, default=15, help="unanswered states before hold")
-    parser.add_argument("--stale-max", type=float, default=1.0, help="seconds without setpoints before hold, states or not")
-    parser.add_argument("--land-after", type=float, default=3.0, help="seconds in failsafe hold before land")
-    parser.add_argument("--forward-sources", default="mocap",
-                        help="state sources forwarded to PX4 as external vision (comma-separated; '' none)")
+    add_options(parser, GatewayConfig)
 
 
 def config_from_args(args) -> GatewayConfig:
-    return GatewayConfig(mavlink=args.mavlink, hover_thrust_norm=args.hover_thrust,
-                         nominal_hover_thrust_norm=args.nominal_hover_thrust, learn_hover=not args.no_learn_hover,
-                         max_tilt_rad=math.radians(args.max_tilt_deg), thrust_max_norm=args.thrust_max,
-                         stale_hold_s=args.stale_hold, stale_states=args.stale_states, stale_max_s=args.stale_max,
-                         land_after_s=args.land_after,
-                         forward_sources=tuple(s for s in args.forward_sources.split(",") if s))
+    return config_from_options(GatewayConfig, args)
 
 
 def run(args, bus) -> int:

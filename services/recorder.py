@@ -36,15 +36,16 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from recordings.layout import RECORDINGS_DIR
+from runtime.options import add_options, config_from_options, option
 from runtime.schema import Message, RecordingMsg, SchemaError
 
-DEFAULT_DIR = "out/recordings"
 
 
 @dataclass(frozen=True)
 class RecorderConfig:
-    directory: str = DEFAULT_DIR
-    flush_period_s: float = 0.1
+    directory: str = option(RECORDINGS_DIR, flag="--recordings-dir", help="where flights are written")
+    flush_period_s: float = option(0.1, flag="--flush-period", unit="s", help="between flushes to disk (≤ 0.2)")
     params_timeout_s: float = 1.0  # per service, all asked at once at a flight's start (answers take ~1 ms)
     preroll_s: float = 2.0  # > start_after_s: the take-off the debounce waited through is in the file
     start_after_s: float = 0.5  # flying this long without a break starts a flight
@@ -52,10 +53,12 @@ class RecorderConfig:
     telemetry_timeout_s: float = 2.0  # vehicle telemetry younger than this decides "flying" (else the setpoints)
     silence_end_s: float = 2.0
     resume_window_s: float = 10.0
-    auto: bool = True  # flights start and end by themselves (else only by command)
+    auto: bool = option(True, flag="--manual", help="record only between `neso cmd recorder start` and stop "
+                                                    "(default: flights start and end by themselves)")
     queue_size: int = 50_000
     status_period_s: float = 1.0
     compact: bool = True  # rewrite a closed file with `rerun rrd optimize` (merged chunks, footer)
+    nice: int = option(5, help="scheduling niceness added to the recorder (0: none)")
 
 
 @dataclass
@@ -471,16 +474,14 @@ class Recorder:
 
 # -- bus adapter ------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--recordings-dir", default=DEFAULT_DIR, help=f"where flights are written (default {DEFAULT_DIR})")
-    parser.add_argument("--flush-period", type=float, default=0.1, help="seconds between flushes to disk (≤ 0.2)")
-    parser.add_argument("--nice", type=int, default=5, help="scheduling niceness added to the recorder (0: none)")
-    parser.add_argument("--manual", action="store_true", help="record only between `neso cmd recorder start` and stop")
+    add_options(parser, RecorderConfig)
 
 
 def config_from_args(args) -> RecorderConfig:
-    if not 0.0 < args.flush_period <= 0.2:
+    config = config_from_options(RecorderConfig, args)
+    if not 0.0 < config.flush_period_s <= 0.2:
         raise SystemExit("--flush-period must be in (0, 0.2] s: a crash may lose at most 0.2 s")
-    return RecorderConfig(directory=args.recordings_dir, flush_period_s=args.flush_period, auto=not args.manual)
+    return config
 
 
 def run(args, bus) -> int:
@@ -490,8 +491,8 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     config = config_from_args(args)
-    if args.nice:
-        os.nice(args.nice)  # below the control loop's services: on a busy CPU the loop runs first, the queue waits
+    if config.nice:
+        os.nice(config.nice)  # below the control loop's services: on a busy CPU the loop runs first, the queue waits
     node = Node("recorder", vehicle=args.vehicle, bus=bus, config=config)
     put_status = node.publisher("recording")
     services = [r.name for r in ROLES if r.per_vehicle and r.bus_role != "router" and r.name != "recorder"]

@@ -15,40 +15,16 @@ from dataclasses import replace
 from flight.deadline import DeadlineWatch
 import numpy as np
 
-from flight.source import FRAMES, MocapConfig, MocapSource, SimSource, SourceConfig, frame_matrix
+from flight.source import MocapSource, SimSource, SourceConfig, frame_matrix
+from runtime.options import add_options, config_from_options
 from runtime.schema import SetpointMsg, StateMsg
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from sim.scenarios import SCENARIOS
-
-    parser.add_argument("--backend", default="sim", choices=("sim", "mocap"))
-    parser.add_argument("--scenario", default="nominal_landing", choices=sorted(SCENARIOS))
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--rate", type=float, default=50.0, help="control rate Hz")
-    parser.add_argument("--start", default="scenario", choices=("scenario", "ground"))
-    parser.add_argument("--duration", type=float, default=0.0, help="seconds of flight, 0 = until stopped")
-    parser.add_argument("--wait-for", default="estimator,controller",
-                        help="services whose liveliness a lockstep run waits for before the first sample")
-    parser.add_argument("--mocap-type", default="optitrack", help="motioncapture backend (optitrack, vicon, qualisys, vrpn, mock...)")
-    parser.add_argument("--mocap-host", default="127.0.0.1")
-    parser.add_argument("--rigid-body", default="uav1", help="the vehicle's rigid-body name in the mocap software")
-    parser.add_argument("--frame", default="y_up", help=f"mocap frame: {sorted(FRAMES)} or 9 numbers (ENU from mocap)")
-    parser.add_argument("--link", default="direct", choices=("direct", "mavlink"),
-                        help="how setpoints reach the simulated vehicle: direct (bus setpoints) or mavlink "
-                             "(it presents itself as a PX4 on --mavlink-out; the px4_gateway flies it)")
-    parser.add_argument("--mavlink-out", default="udpout:127.0.0.1:14540",
-                        help="where the simulated PX4 sends its MAVLink (the gateway's udpin address)")
-    parser.add_argument("--mavlink-log", default="", help="JSON-lines log of every MAVLink command/setpoint received")
+    add_options(parser, SourceConfig)
 
 
 def config_from_args(args) -> SourceConfig:
-    return SourceConfig(
-        backend=args.backend, scenario=args.scenario, seed=args.seed, rate_hz=args.rate, start=args.start,
-        lockstep=getattr(args, "lockstep", False), duration_s=args.duration,
-        wait_for=tuple(s for s in args.wait_for.split(",") if s),
-        mocap=MocapConfig(type=args.mocap_type, hostname=args.mocap_host, rigid_body=args.rigid_body, frame=args.frame),
-        link=args.link, mavlink_out=args.mavlink_out, mavlink_log=args.mavlink_log,
-    )
+    return config_from_options(SourceConfig, args, lockstep=getattr(args, "lockstep", False))
 
 
 def run(args, bus) -> int:

@@ -41,6 +41,9 @@ from dataclasses import dataclass, field
 from neso.control import ControlConfig
 from neso.learning import LABELS
 from neso.types import OMEGA_O_RPS
+from recordings.layout import RECORDINGS_DIR
+from runtime.options import add_options, config_from_options, option
+from services.registry import DEFAULT_ROOT
 from runtime.schema import NetworkMsg
 
 MODES = ("tdr", "base")
@@ -51,11 +54,11 @@ class TrainerConfig:
     """``kp``, ``kd``, ``omega_o_rps``: the gains the certificate is computed for until the
     estimator reports the ones flown."""
 
-    registry: str = "networks/registry"
-    recordings_dir: str = "out/recordings"
-    kp: float = ControlConfig().kp[2]
-    kd: float = ControlConfig().kd[2]
-    omega_o_rps: float = OMEGA_O_RPS
+    registry: str = option(DEFAULT_ROOT, help="network registry root")
+    recordings_dir: str = option(RECORDINGS_DIR, help="where recordings are looked for")
+    kp: float = option(ControlConfig().kp[2], unit="1/s²", help="controller z gain k_p for the certificate")
+    kd: float = option(ControlConfig().kd[2], unit="1/s", help="controller z gain k_d for the certificate")
+    omega_o_rps: float = option(OMEGA_O_RPS, flag="--omega-o", unit="rad/s", help="observer bandwidth for the certificate")
     epochs: int = 100
 
 
@@ -256,12 +259,7 @@ def predict_closed_loop(recordings, active_net, candidate_net, lag, kp: float, k
 
 # -- bus adapter ------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    d = TrainerConfig()
-    parser.add_argument("--registry", default=d.registry, help="network registry root (default %(default)s)")
-    parser.add_argument("--recordings-dir", default=d.recordings_dir, help="where recordings are looked for")
-    parser.add_argument("--kp", type=float, default=d.kp, help="controller z gain k_p for the certificate, 1/s²")
-    parser.add_argument("--kd", type=float, default=d.kd, help="controller z gain k_d for the certificate, 1/s")
-    parser.add_argument("--omega-o", type=float, default=d.omega_o_rps, help="observer bandwidth for the certificate")
+    add_options(parser, TrainerConfig)
 
 
 def run(args, bus) -> int:
@@ -269,8 +267,7 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     os.nice(10)  # training shares the machine with the control loop: it yields the CPU to it
-    config = TrainerConfig(registry=args.registry, recordings_dir=args.recordings_dir, kp=args.kp, kd=args.kd,
-                           omega_o_rps=args.omega_o)
+    config = config_from_options(TrainerConfig, args)
     node = Node("trainer", vehicle=args.vehicle, bus=bus, config=config)
     jobs: queue.Queue[Job] = queue.Queue()
     state = {"active": None, "certificate": None, "doing": "idle", "last": "", "next": 1}
