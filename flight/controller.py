@@ -28,11 +28,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from flight import KEEP_SAMPLES
+from flight.mission import COMMANDS, Mission, MissionConfig
+from flight.ratecheck import RateCheck
 from neso.certificate import flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
-from flight.mission import COMMANDS, Mission, MissionConfig
 from neso.types import OMEGA_O_RPS, AttitudeSetpoint, StateMeasurement
 from runtime.options import option
 from runtime.params import Param, Refusal
@@ -113,6 +114,7 @@ class ControllerCore:
         self.armed = config.mission != "idle"
         self.network_certificate: dict = {}  # the estimator's latest NetworkMsg.certificate
         self.fallbacks = 0  # times the local ESO took over
+        self.rate_check = RateCheck("controller", config.control.dt_s)
         self._newest_estimate: tuple[int, float] | None = None  # (seq, arrival) of the newest estimate
 
     # -- the certificate ------------------------------------------------------------------
@@ -180,6 +182,9 @@ class ControllerCore:
         if self._last_seq < 0 or state.seq < self._last_seq:
             self._begin_flight(state, meas)
         self._last_seq = state.seq
+        wrong_rate = self.rate_check.observe(state.seq, state.t_s)
+        if wrong_rate:
+            self.events.append(wrong_rate)
         local = self.local.update(meas, self._applied)
         waiting_since = self._pending.waiting_since_s if self._pending is not None else now_s
         self._pending = _Pending(state, meas, waiting_since)

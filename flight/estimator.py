@@ -59,12 +59,13 @@ from typing import Callable
 import numpy as np
 
 from flight import KEEP_SAMPLES
+from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
+from flight.ratecheck import RateCheck
 from neso.certificate import FlightCertificate, flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.features import FeatureBuilder
-from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
 from neso.netfile import NetworkFileError, load_network
 from neso.network import LipschitzMLP
 from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS, PATHWAYS
@@ -194,6 +195,7 @@ class EstimatorCore:
         self._last_seq = -1
         self._last_output: EstimateMsg | None = None
         self.warm_ticks = 0
+        self.rate_check = RateCheck("estimator", config.dt_s)
 
     # -- the certificate -------------------------------------------------------------------
     def certificate_of(self, net: LipschitzMLP | None, gains_z: tuple[float, float] | None = None) -> FlightCertificate:
@@ -395,6 +397,9 @@ class EstimatorCore:
         else:
             applied = self._applied.get(state.seq - 1) or self._latest_applied or self._hover
         self._last_seq = state.seq
+        wrong_rate = self.rate_check.observe(state.seq, state.t_s)
+        if wrong_rate:
+            self.events.append(wrong_rate)
         self._meas_z[state.seq] = state.pos_enu_m[2]
         est = self.estimator.update(meas, applied)
         self.warm_ticks += 1
