@@ -11,16 +11,17 @@ here. Nothing in a UI callback blocks.
 """
 from __future__ import annotations
 
-import html
 import math
 import threading
 import time
 
 import numpy as np
 
-from dashboard.model import FleetModel, StatusItem, VehicleModel, certificate_shown, status_line
+from dashboard.model import FleetModel, VehicleModel, certificate_shown, status_line
 from dashboard.provenance import provenance_line
 from dashboard.scene import Scene
+from dashboard.text import (events_markdown, figures_markdown, health_markdown, network_markdown, status_html,
+                            vehicle_markdown)
 from flight.controller import CONTROLLER_PARAMS
 from neso.types import OMEGA_O_RPS, PATHWAYS
 
@@ -35,21 +36,6 @@ PLOT_POINTS = 300  # points per series sent to the browser
 PLOTS_WIDTH_PX = 470  # left column; the right one is viser's "medium" control width
 PLOT_HEIGHT_PX = 106  # five plots and their legends fit an 800 px high window without scrolling
 STATUS_WIDTH_PX = 360  # the floating status line fits the 3D view of a 1280 px wide window
-LEVEL_RGB = {"ok": "#2b8a3e", "info": "#1864ab", "warn": "#e8590c", "bad": "#c92a2a", "off": "#868e96"}
-EVENTS_SHOWN = 6
-
-
-def _predicted(candidate: dict) -> str:
-    """The trainer's closed-loop prediction for a candidate, as the network panel shows it."""
-    p = candidate.get("predicted") or {}
-    if "change" not in p:
-        return "no closed-loop prediction"
-    return (f"predicted z RMSE {p.get('rmse_active_cm', math.nan):.2f} → {p.get('rmse_candidate_cm', math.nan):.2f} cm "
-            f"({p['change'] * 100:+.0f} %)")
-
-
-def _fmt(x: float, spec: str = ".3f", unit: str = "") -> str:
-    return "–" if x is None or not math.isfinite(x) else f"{x:{spec}}{unit}"
 
 
 def _decimate(columns: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
@@ -71,17 +57,6 @@ def _ffill(a: np.ndarray) -> np.ndarray:
     first = int(np.argmax(ok))
     idx[:first] = first
     return a[idx]
-
-
-def status_html(vehicle: str, items: list[StatusItem]) -> str:
-    """The status line as coloured badges (text escaped: it carries names from the bus)."""
-    badges = [f'<span data-slot="vehicle" style="font:700 14px sans-serif;margin-right:4px">{html.escape(vehicle)}</span>']
-    for it in items:
-        badges.append(f'<span data-slot="{it.slot}" data-level="{it.level}" title="{html.escape(it.detail)}" '
-                      f'style="background:{LEVEL_RGB[it.level]};color:#fff;border-radius:4px;padding:1px 6px;'
-                      f'margin:2px;display:inline-block;font:600 12.5px sans-serif;white-space:nowrap">'
-                      f'{html.escape(it.text)}</span>')
-    return f'<div style="line-height:1.6">{"".join(badges)}</div>'
 
 
 def _series(label: str, stroke: str, width: float = 1.5, dash: list | None = None) -> dict:
@@ -327,85 +302,11 @@ class DashboardView:
                               _ffill(w["pitch_sp"]) * deg)
 
     def _render_text(self, v: VehicleModel, now_s: float, cert) -> None:
-        state, est, ref = v.latest.get("state"), v.latest.get("estimate"), v.latest.get("reference")
-        rms_z, rms_3d = v.tracking_rms_m()
-        lat50, lat99 = v.loop_latency_ms()
-        bus50, bus99 = v.bus_latency_ms()
-        lp, ln = v.lipschitz()
-        misses, span = v.per_minute("source", "deadline_misses", now_s)
-        falls, _ = v.per_minute("controller", "local_eso_fallbacks", now_s)
-        rec = v.latest.get("recording")
-        rec_text = "not recorded (no recorder on the bus)" if rec is None else (
-            f"● REC `{rec.path}` · {rec.duration_s:.1f} s" if rec.recording else "recorder idle")
         self._set(self.provenance, provenance_line(v, now_s))
-        if state is not None:
-            pose = (f"x {state.pos_enu_m[0]:+.3f} y {state.pos_enu_m[1]:+.3f} **z {state.pos_enu_m[2]:.3f} m** · "
-                    f"roll {math.degrees(state.roll_rad):+.1f}° pitch {math.degrees(state.pitch_rad):+.1f}° "
-                    f"yaw {math.degrees(state.yaw_rad):+.1f}°")
-        else:
-            pose = "no state yet"
-        net = v.latest.get("network")
-        origin = (str(net.active.get("source", "")) if net is not None else
-                  v.param_notes.get("estimator", "as loaded at start"))
-        segment = ref.segment if ref is not None and now_s - v.received.get("reference", -1e9) < 1.0 else "idle"
-        lines = [
-            f"**Pose** (t = {_fmt(state.t_s if state else math.nan, '.2f')} s, flight {v.flights + 1}): {pose}",
-            f"**Reference z** {_fmt(ref.pos_enu_m[2] if ref else math.nan, '.3f', ' m')} · segment {segment}",
-            "",
-            "| figure | value |", "|---|---|",
-            f"| tracking RMS z / 3D ({v.window_s:g} s) | {_fmt(rms_z * 100, '.2f')} / {_fmt(rms_3d * 100, '.2f')} cm |",
-            f"| loop rate | {_fmt(v.loop_rate_hz(), '.1f')} Hz |",
-            f"| misses / local-ESO (last {span:.0f} s) | {_fmt(misses, '.0f')} / {_fmt(falls, '.0f')} |",
-            f"| loop latency state→setpoint p50/p99 | {_fmt(lat50, '.2f')} / {_fmt(lat99, '.2f')} ms |",
-            f"| bus → dashboard p50/p99 | {_fmt(bus50, '.2f')} / {_fmt(bus99, '.2f')} ms |",
-            f"| pathway | {est.pathway if est else '–'} |",
-            f"| network | `{est.network_id if est else '–'}` ({origin[:120]}) |",
-            f"| L_N physical / normalised | {_fmt(lp, '.4g')} (m/s²)/unit z / {_fmt(ln, '.4g')} |",
-            f"| ω_o | {_fmt(v.omega_o_rps(), '.1f', ' rad/s')} |",
-            f"| certificate | {cert.text} |",
-            f"| canary | {(net.canary.get('last') or 'idle') if net is not None else '–'} |",
-            f"| recording | {rec_text} |",
-        ]
-        self._set(self.figures, "\n".join(lines))
-        events = []
-        for g in v.recent_events(EVENTS_SHOWN):
-            ago = max(0.0, now_s - g.last_s)
-            count = f" **×{g.count}**" if g.count > 1 else ""
-            events.append(f"- `{g.service}` {g.level}{count} ({ago:.0f} s ago): {g.text[:220]}")
-        self._set(self.events, "**Events** (repeats grouped)\n\n" + ("\n".join(events) if events else "_none_"))
-        rows = ["| service | alive | rate | stale | rejected | status |", "|---|---|---|---|---|---|"]
-        for name, sh in sorted(v.services.items()):
-            h = sh.health
-            stale = sh.stale(now_s)
-            rows.append(f"| {name} | {'yes' if sh.alive else '**NO**'} | {_fmt(h.rate_hz if h else math.nan, '.1f')} Hz | "
-                        f"{'⚠ ' if stale else ''}{_fmt(max(h.staleness_s.values(), default=-1.0) * 1e3 if h else math.nan, '.0f')} ms | "
-                        f"{int(sum(h.rejected.values())) if h else '–'} | {(h.status if h else 'no report')[:100]} |")
-        rows.append(f"\nDashboard: {self.model.rejected} rejected messages, {self.model.dropped} dropped (inbox full)"
-                    + (f" (last: {self.model.last_rejection[:120]})" if self.model.rejected else ""))
-        self._set(self.health, "\n".join(rows))
-        tel = v.latest.get("telemetry")
-        tel_text = "**Vehicle (PX4)**: no telemetry on the bus (direct sim)" if tel is None else (
-            f"**Vehicle (PX4)**: {'ARMED' if tel.armed else 'disarmed'} · mode {tel.flight_mode} · "
-            f"{'in air' if tel.in_air else 'on ground'} · battery {tel.battery_v:.2f} V "
-            f"({_fmt(tel.battery_remaining * 100 if tel.battery_remaining >= 0 else math.nan, '.0f')} %)"
-            + (f" · failsafe **{tel.failsafe}**" if tel.failsafe else ""))
-        rec_line = "**Recording**: " + (rec_text if rec is None else
-                                        f"{rec_text} · flight `{rec.flight}` · {rec.size_bytes / 1e6:.1f} MB · "
-                                        f"dropped {rec.dropped}")
-        self._set(self.vehicle_status, tel_text + "\n\n" + rec_line)
-        if net is None:
-            net_text = "**Networks**: no network report on the bus; active network from estimates: " \
-                       f"`{est.network_id if est else '–'}`"
-        else:
-            cand = net.candidate
-            net_text = (f"**Active** `{net.active.get('id', '?')}` from {net.active.get('source', '?')} · inputs "
-                        f"{net.active.get('feature_set', '–')} · L_N {_fmt(lp, '.4g')} phys / {_fmt(ln, '.4g')} normalised  \n"
-                        + (f"**Candidate** `{cand.get('id')}` ({cand.get('state', '')}) · shadow error "
-                           f"{net.shadow_error_rms_mps2:.3f} m/s² RMS · {_predicted(cand)} · "
-                           f"certificate {'holds' if cand.get('certificate', {}).get('holds') else 'FAILS'}"
-                           if cand else "no candidate")
-                        + (f"  \nprevious `{net.previous.get('id')}`" if net.previous else "")
-                        + f"  \ncanary: {net.canary.get('last') or 'idle'}")
-        self._set(self.network, net_text)
+        self._set(self.figures, figures_markdown(v, now_s, cert))
+        self._set(self.events, events_markdown(v, now_s))
+        self._set(self.health, health_markdown(v, self.model, now_s))
+        self._set(self.vehicle_status, vehicle_markdown(v))
+        self._set(self.network, network_markdown(v))
         if self._pending_pathway is not None and self._pending_pathway[0] != self.selected:
             self._confirm_pathway(False)

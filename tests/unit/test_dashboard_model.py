@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from neso.types import OMEGA_O_RPS
 from dashboard.model import (STATUS_SLOTS, CertificateShown, FleetModel, StatusItem, VehicleModel, certificate_shown,
                              status_line)
 from dashboard.service import decode_into
+from neso.types import OMEGA_O_RPS
 from runtime.schema import (EstimateMsg, EventMsg, HealthMsg, Keys, NetworkMsg, RecordingMsg, ReferenceMsg,
                             SetpointMsg, StateMsg, TelemetryMsg)
 
@@ -258,7 +258,7 @@ def test_the_status_line_colours_each_slot():
 
 
 def test_the_status_line_escapes_what_came_from_the_bus():
-    from dashboard.view import status_html
+    from dashboard.text import status_html
 
     page = status_html("uav1", [StatusItem("network", "<img src=x onerror=alert(1)>", "ok", 'a "quote"')])
     assert "<img" not in page and "&lt;img" in page and "&quot;quote&quot;" in page

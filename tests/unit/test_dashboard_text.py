@@ -1,0 +1,74 @@
+"""The dashboard's text panels, as pure functions of the model (no browser)."""
+from __future__ import annotations
+
+import dataclasses
+
+from dashboard.model import FleetModel, certificate_shown
+from dashboard.text import (events_markdown, figures_markdown, fmt, health_markdown, network_markdown, predicted_text,
+                            vehicle_markdown)
+from runtime.schema import EventMsg, NetworkMsg
+from tests.helpers import flight_messages
+
+
+def flown(n: int = 200):
+    model = FleetModel(window_s=10.0)
+    for topic, msg in flight_messages(n):
+        if topic.startswith("health/"):
+            model.ingest("uav1", "health", msg, 100.0)
+        elif topic.startswith("params/"):
+            model.ingest("uav1", "params", msg, 100.0, service=topic.split("/")[1])
+        elif topic.startswith("event/"):
+            model.ingest("uav1", "event", msg, 100.0)
+        else:
+            model.ingest("uav1", topic, msg, 100.0 + msg.t_s)
+    return model, model.vehicle("uav1")
+
+
+def test_missing_values_show_as_a_dash():
+    assert fmt(float("nan")) == "–" and fmt(None) == "–" and fmt(1.23456, ".2f", " cm") == "1.23 cm"
+    model = FleetModel()
+    v = model.vehicle("uav2")
+    text = figures_markdown(v, 0.0, certificate_shown(v))
+    assert "no state yet" in text and "| pathway | – |" in text
+    assert network_markdown(v).startswith("**Networks**: no network report on the bus")
+    assert "no telemetry on the bus (direct sim)" in vehicle_markdown(v)
+    assert "not recorded (no recorder on the bus)" in vehicle_markdown(v)
+
+
+def test_figures_show_the_newest_sample():
+    model, v = flown()
+    last = [m for t, m in flight_messages(200) if t == "state"][-1]
+    text = figures_markdown(v, 100.0 + last.t_s, certificate_shown(v))
+    assert f"**z {last.pos_enu_m[2]:.3f} m**" in text
+    assert f"t = {last.t_s:.2f} s" in text
+    assert "| pathway | eso |" in text and "`base-L1.0`" in text
+    assert "| loop rate | 50.0 Hz |" in text
+
+
+def test_events_are_grouped_and_health_counts_rejections():
+    model, v = flown()
+    for _ in range(3):
+        model.ingest("uav1", "event", EventMsg(stamp_s=101.0, service="estimator", level="warning", text="late"), 101.0)
+    text = events_markdown(v, 104.0)
+    assert "`estimator` warning **×3** (3 s ago): late" in text
+    model.rejected, model.last_rejection = 2, "state: expected a number, got str"
+    health = health_markdown(v, model, 104.0)
+    assert "| estimator | " in health and "Dashboard: 2 rejected messages" in health
+    assert "(last: state: expected a number, got str)" in health
+
+
+def test_the_network_panel_shows_the_candidate_and_its_prediction():
+    _, v = flown(10)
+    candidate = {"id": "uav1-tdr-1", "state": "shadow", "certificate": {"holds": True},
+                 "predicted": {"rmse_active_cm": 1.5, "rmse_candidate_cm": 1.2, "change": -0.2}}
+    msg = NetworkMsg(stamp_s=100.0, seq=9, active={"id": "base", "source": "file", "feature_set": "state@1"},
+                     candidate=candidate, previous={}, shadow_error_rms_mps2=0.05, certificate={},
+                     canary={"last": "idle"})
+    v.ingest("network", msg, 100.2)
+    text = network_markdown(v)
+    assert "**Active** `base` from file · inputs state@1" in text
+    assert "**Candidate** `uav1-tdr-1` (shadow) · shadow error 0.050 m/s² RMS" in text
+    assert predicted_text(candidate) == "predicted z RMSE 1.50 → 1.20 cm (-20 %)" and "certificate holds" in text
+    failing = dataclasses.replace(msg, candidate=dict(candidate, certificate={"holds": False}))
+    v.ingest("network", failing, 100.3)
+    assert "certificate FAILS" in network_markdown(v)
