@@ -39,29 +39,68 @@ class DashboardConfig:
     nice: int = option(10, help="CPU niceness added at start: the page must never slow the control loop")
 
 
+SUPERSEDED = "superseded by a newer change before it was sent"
+
+
 class PortTaken(OSError):
     """The dashboard's port is in use by something else."""
 
 
 class BusFacade:
-    """Parameter sets and commands on worker threads; replies come back through callbacks."""
+    """Parameter sets and commands on worker threads; replies come back through callbacks.
+
+    Requests about the same thing are superseded, like viser's ``redundancy_key``: per key at most
+    one runs and one waits, and a newer one replaces the waiting one (whose reply says it was
+    superseded), so an operator dragging the L_N slider sends the newest value, not a queue of stale
+    ones, and two changes of the same parameters never overtake each other on the pool's threads.
+    Commands have no key: every one is an intent (arm, then take off) and each is sent."""
 
     def __init__(self, session, *, timeout_s: float = 2.0, workers: int = 3) -> None:
         self.session = session
         self.timeout_s = timeout_s
         self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dashboard-bus")
+        self._lock = threading.Lock()
+        self._busy: set = set()  # keys with a request running
+        self._waiting: dict = {}  # key → the request to run when the running one is done
+        self.superseded = 0
 
-    def _submit(self, fn: Callable[[], tuple[bool, str]], reply: Reply) -> None:
-        def run() -> None:
-            try:
-                ok, text = fn()
-            except Exception as exc:  # no reply, or the service is gone: say so on the page
-                ok, text = False, f"{type(exc).__name__}: {exc}"
-            try:
-                reply(ok, text)
-            except Exception as exc:
-                print(f"[dashboard] showing a reply failed: {exc}", flush=True)
-        self.pool.submit(run)
+    def _submit(self, fn: Callable[[], tuple[bool, str]], reply: Reply, key=None) -> None:
+        if key is None:
+            self.pool.submit(self._run, fn, reply)
+            return
+        with self._lock:
+            replaced = self._waiting.pop(key, None) if key in self._busy else None
+            if key in self._busy:
+                self._waiting[key] = (fn, reply)
+            else:
+                self._busy.add(key)
+                self.pool.submit(self._run_keyed, key, fn, reply)
+            self.superseded += replaced is not None
+        if replaced is not None:
+            self._reply(replaced[1], False, SUPERSEDED)
+
+    def _run_keyed(self, key, fn: Callable[[], tuple[bool, str]], reply: Reply) -> None:
+        self._run(fn, reply)
+        with self._lock:
+            waiting = self._waiting.pop(key, None)
+            if waiting is None:
+                self._busy.discard(key)
+                return
+        self.pool.submit(self._run_keyed, key, *waiting)
+
+    def _run(self, fn: Callable[[], tuple[bool, str]], reply: Reply) -> None:
+        try:
+            ok, text = fn()
+        except Exception as exc:  # no reply, or the service is gone: say so on the page
+            ok, text = False, f"{type(exc).__name__}: {exc}"
+        self._reply(reply, ok, text)
+
+    @staticmethod
+    def _reply(reply: Reply, ok: bool, text: str) -> None:
+        try:
+            reply(ok, text)
+        except Exception as exc:
+            print(f"[dashboard] showing a reply failed: {exc}", flush=True)
 
     def set_params(self, vehicle: str, service: str, values: dict, reply: Reply) -> None:
         from runtime.client import set_params
@@ -69,7 +108,7 @@ class BusFacade:
         def go() -> tuple[bool, str]:
             r = set_params(self.session, Keys(vehicle), service, values, timeout_s=self.timeout_s)
             return r.ok, r.error if not r.ok else f"{service} will apply {values}"
-        self._submit(go, reply)
+        self._submit(go, reply, key=("set", vehicle, service, tuple(sorted(k for k in values if k != "override"))))
 
     def command(self, vehicle: str, service: str, name: str, args: dict, reply: Reply) -> None:
         from runtime.client import command
@@ -82,15 +121,14 @@ class BusFacade:
     def get_params(self, vehicle: str, service: str, done: Callable[[dict], None]) -> None:
         from runtime.client import get_params
 
-        def go() -> None:
-            try:
-                done(get_params(self.session, Keys(vehicle), service, timeout_s=self.timeout_s).values)
-            except Exception as exc:
-                print(f"[dashboard] params of {vehicle}/{service}: {exc}", flush=True)
-        self.pool.submit(go)
+        def go() -> tuple[bool, str]:
+            done(get_params(self.session, Keys(vehicle), service, timeout_s=self.timeout_s).values)
+            return True, ""
 
-    def compute(self, fn: Callable[[], object]) -> None:
-        self.pool.submit(fn)
+        def reply(ok: bool, text: str) -> None:
+            if not ok and text != SUPERSEDED:
+                print(f"[dashboard] params of {vehicle}/{service}: {text}", flush=True)
+        self._submit(go, reply, key=("get", vehicle, service))
 
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
