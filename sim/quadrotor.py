@@ -29,6 +29,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -240,6 +241,60 @@ def _rot_from_quat(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
     )
 
 
+class _Physics(NamedTuple):
+    """One configuration's constants in the order the hot loop unpacks them into locals (SI units;
+    the inner loop's gains per axis; ``c_t``/``c_m``: the thrust and moment lags' per-step factors;
+    the ground effect, washout, rotor drag and terrain as the functions the loop calls)."""
+
+    dt: float
+    g: float
+    m: float
+    ixx: float
+    iyy: float
+    izz: float
+    kax: float
+    kay: float
+    kaz: float
+    krx: float
+    kry: float
+    krz: float
+    kdx: float
+    kdy: float
+    kdz: float
+    mrx: float
+    mry: float
+    mrz: float
+    c_t: float
+    c_m: float
+    dx: float
+    dy: float
+    dz: float
+    a: float
+    inv4a: float
+    kq: float
+    inv4kq: float
+    t_max: float
+    sag: float
+    contact: float
+    rr: float
+    arm: float
+    flat: bool
+    terrain_distance: Callable
+    terrain_height: Callable
+    use_ge: bool
+    ratio: Callable
+    a_ge: float
+    v_i: float
+    use_washout: bool
+    washout_weight: Callable
+    scale_drag: bool
+    drag_factor: Callable
+    f_hover: float
+    k_h: float
+    limits: bool
+    f_min: float
+
+
 class QuadrotorSim:
     """The simulated vehicle. ``step(setpoint)`` advances one control period and returns the
     motion-capture measurement available then; ``truth`` is the true state.
@@ -262,7 +317,35 @@ class QuadrotorSim:
         self._mocap_ticks = _ticks(1.0 / config.mocap.rate_hz, dt, "mocap period")
         self._latency_ticks = _ticks(config.mocap.latency_s, dt, "mocap latency_s")
         self._seed = seed
+        self._physics = self._physics_constants()
         self.reset(pos_enu_m=config.initial_pos_enu_m, yaw_rad=config.initial_yaw_rad)
+
+    def _physics_constants(self) -> _Physics:
+        cfg = self.config
+        p, il, ge = cfg.params, cfg.inner_loop, cfg.ground_effect
+        dt = self._dt
+        a = p.arm_length_m / math.sqrt(2.0)
+        use_ge = not isinstance(ge, NoGroundEffect)
+        limits = il.rotor_thrust_limits
+        return _Physics(
+            dt=dt, g=GRAVITY_MPS2, m=p.mass_kg, ixx=p.inertia_kgm2[0], iyy=p.inertia_kgm2[1], izz=p.inertia_kgm2[2],
+            kax=il.attitude_p_per_s[0], kay=il.attitude_p_per_s[1], kaz=il.attitude_p_per_s[2],
+            krx=il.rate_p_per_s[0], kry=il.rate_p_per_s[1], krz=il.rate_p_per_s[2],
+            kdx=il.rate_d[0], kdy=il.rate_d[1], kdz=il.rate_d[2],
+            mrx=il.max_rate_rps[0], mry=il.max_rate_rps[1], mrz=il.max_rate_rps[2],
+            c_t=1.0 - math.exp(-dt / il.thrust_time_constant_s), c_m=1.0 - math.exp(-dt / il.torque_time_constant_s),
+            dx=p.drag_coeff_per_s[0], dy=p.drag_coeff_per_s[1], dz=p.drag_coeff_per_s[2],
+            a=a, inv4a=1.0 / (4.0 * a), kq=p.yaw_moment_per_thrust_m, inv4kq=1.0 / (4.0 * p.yaw_moment_per_thrust_m),
+            t_max=p.max_thrust_n, sag=p.battery_sag_per_min / 60.0, contact=p.contact_height_m, rr=p.rotor_radius_m,
+            arm=p.arm_length_m, flat=isinstance(cfg.terrain, FlatGround), terrain_distance=cfg.terrain.distance_fn(),
+            terrain_height=cfg.terrain.height_fn(), use_ge=use_ge, ratio=ge.thrust_ratio,
+            a_ge=a if cfg.ground_effect_per_rotor else 0.0,  # hub offset seen by the ground effect
+            v_i=p.hover_induced_velocity_mps,
+            use_washout=use_ge and not isinstance(cfg.ground_effect_washout, NoWashout),
+            washout_weight=cfg.ground_effect_washout.weight, scale_drag=not isinstance(cfg.rotor_drag, ConstantRotorDrag),
+            drag_factor=cfg.rotor_drag.factor, f_hover=0.25 * p.mass_kg * GRAVITY_MPS2,
+            k_h=cfg.translational_lift.k_h_per_m(p.hover_induced_velocity_mps), limits=limits,
+            f_min=0.0 if limits else -math.inf)
 
     # ------------------------------------------------------------------ public API
     def reset(self, *, pos_enu_m: tuple[float, float, float] | np.ndarray, yaw_rad: float = 0.0) -> StateMeasurement:
@@ -442,54 +525,28 @@ class QuadrotorSim:
             yaw_rad=chosen.yaw_rad,
         )
 
-    def _advance(self, n_steps: int) -> None:  # noqa: C901 - the hot loop, kept in one piece
-        cfg = self.config
-        p = cfg.params
-        il = cfg.inner_loop
-        dt = self._dt
+    def _advance(self, n_steps: int) -> None:
         if self._crashed or self._diverged:
-            for _ in range(n_steps):
-                self._n += 1
-                if self._n % self._mocap_ticks == 0:
-                    self._record_sample()
-            return
+            self._advance_frozen(n_steps)
+        else:
+            self._advance_flying(n_steps)
 
-        g = GRAVITY_MPS2
-        m = p.mass_kg
-        ixx, iyy, izz = p.inertia_kgm2
-        kax, kay, kaz = il.attitude_p_per_s
-        krx, kry, krz = il.rate_p_per_s
-        kdx, kdy, kdz = il.rate_d
-        mrx, mry, mrz = il.max_rate_rps
-        c_t = 1.0 - math.exp(-dt / il.thrust_time_constant_s)
-        c_m = 1.0 - math.exp(-dt / il.torque_time_constant_s)
-        dx, dy, dz = p.drag_coeff_per_s
-        a = p.arm_length_m / math.sqrt(2.0)
-        inv4a = 1.0 / (4.0 * a)
-        kq = p.yaw_moment_per_thrust_m
-        inv4kq = 1.0 / (4.0 * kq)
-        t_max = p.max_thrust_n
-        sag = p.battery_sag_per_min / 60.0
-        contact = p.contact_height_m
-        rr = p.rotor_radius_m
-        arm = p.arm_length_m
-        terrain = cfg.terrain
-        flat = isinstance(terrain, FlatGround)
-        terrain_distance = terrain.distance_fn()
-        terrain_height = terrain.height_fn()
-        ge = cfg.ground_effect
-        use_ge = not isinstance(ge, NoGroundEffect)
-        ratio = ge.thrust_ratio
-        a_ge = a if cfg.ground_effect_per_rotor else 0.0  # hub offset seen by the ground effect
-        v_i = p.hover_induced_velocity_mps
-        use_washout = use_ge and not isinstance(cfg.ground_effect_washout, NoWashout)
-        washout_weight = cfg.ground_effect_washout.weight
-        scale_drag = not isinstance(cfg.rotor_drag, ConstantRotorDrag)
-        drag_factor = cfg.rotor_drag.factor
-        f_hover = 0.25 * m * g
-        k_h = cfg.translational_lift.k_h_per_m(v_i)
-        limits = il.rotor_thrust_limits
-        f_min = 0.0 if limits else -math.inf
+    def _advance_frozen(self, n_steps: int) -> None:
+        """After a crash or divergence: time advances, the state stays, the mocap keeps sampling it."""
+        for _ in range(n_steps):
+            self._n += 1
+            if self._n % self._mocap_ticks == 0:
+                self._record_sample()
+
+    def _advance_flying(self, n_steps: int) -> None:  # noqa: C901 - the hot loop
+        """``n_steps`` physics steps: inner attitude loop, rotor allocation and limits, ground effect,
+        gusts and rotor drag, rigid-body integration, ground contact. The loop body is one piece of
+        scalar arithmetic on locals on purpose: it runs 10 times per control period, and Python
+        function calls there would be a visible share of its cost (``python -m bench``, simulator
+        speed); the configuration's constants come unpacked from :meth:`_physics_constants`."""
+        (dt, g, m, ixx, iyy, izz, kax, kay, kaz, krx, kry, krz, kdx, kdy, kdz, mrx, mry, mrz, c_t, c_m, dx, dy, dz,
+         a, inv4a, kq, inv4kq, t_max, sag, contact, rr, arm, flat, terrain_distance, terrain_height, use_ge, ratio,
+         a_ge, v_i, use_washout, washout_weight, scale_drag, drag_factor, f_hover, k_h, limits, f_min) = self._physics
         gust_step = self._gusts.step
         mocap_ticks = self._mocap_ticks
         pending = self._pending
