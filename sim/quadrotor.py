@@ -437,6 +437,7 @@ class QuadrotorSim:
         twin._samples = deque(self._samples, maxlen=self._samples.maxlen)
         twin._gusts = self._gusts.reconfigured(config.turbulence)
         twin._mocap = self._mocap.copy()
+        twin._physics = twin._physics_constants()
         return twin
 
     @property
