@@ -247,12 +247,8 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard).
     ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse."""
     from runtime.bus import BusConfig, open_session
-    from runtime.client import command
     from runtime.launcher import interrupt
-    from runtime.probe import Probe
-    from runtime.schema import Keys
 
-    keys = Keys("uav1")
     rec_dir, registry = os.path.join(workdir, "recordings"), os.path.join(workdir, "registry")
     argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
             "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry, "--seed", str(seed)]
@@ -260,91 +256,136 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     up_log = open(os.path.join(workdir, "neso-up.log"), "w")
     up = subprocess.Popen(argv, stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    report = TdrReport()
     session = open_session(BusConfig(connect=(hub,)))
     try:
+        loop = _Loop.watch(session, log, registry)
+        try:
+            if on_up is not None:
+                on_up(up)
+            return loop.run(epochs=epochs, fly_after=fly_after, force_offer=force_offer)
+        finally:
+            loop.close()
+    finally:
+        session.close()
+        interrupt(up, timeout_s=20.0)
+        up_log.close()
+
+
+@dataclass
+class _Loop:
+    """The stages of :func:`fly_tdr_loop` against a running ``neso up``, filling one report."""
+
+    probe: object
+    events: "_Events"
+    cmd: object
+    log: object
+    registry: str
+    report: TdrReport = field(default_factory=TdrReport)
+
+    @classmethod
+    def watch(cls, session, log, registry: str) -> "_Loop":
+        from runtime.client import command
+        from runtime.probe import Probe
+        from runtime.schema import Keys
+
+        keys = Keys("uav1")
         probe = Probe(session, keys.vehicle, ("state", "truth", "estimate", "setpoint", "reference", "network",
-                                       "recording"))
+                                              "recording"))
         events = _Events(session, keys, ("trainer", "estimator", "recorder"))
-        if on_up is not None:
-            on_up(up)
 
         def cmd(service, command_name, timeout_s=5.0, **args):
             return command(session, keys, service, command_name, args, timeout_s=timeout_s)
+        return cls(probe, events, cmd, log, registry)
 
-        probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
-        log("flying the lemniscate under Neural-ESO with the base network, recording")
+    def close(self) -> None:
+        self.events.close()
+        self.probe.close()
+
+    def run(self, *, epochs: int, fly_after: bool, force_offer: bool) -> TdrReport:
+        report = self.report
+        self.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
+        first_run, t_stop = self.record_first_lemniscate()
+        done, t_train = self.train(epochs, force_offer)
+        _registry_figures(self.registry, report)
+        report.offered = "offer accepted" in done
+        if not report.offered:  # predicted to fly worse (or refused): the base network flies on
+            self.log(f"candidate not offered: {done}")
+            if fly_after:
+                self.fly_base_again(first_run)
+            return report
+        t_offered = time.monotonic()
+        swap_seq, t_promote, t_promoted = self.shadow_and_promote(force_offer)
+        report.stage_s = {"stop recording": t_train - t_stop, "train job (dataset, train, certify, predict, store, offer)":
+                          t_offered - t_train, "promote": t_promoted - t_promote,
+                          "recording stopped -> promoted (without the 2 s shadow)":
+                          (t_offered - t_stop) + (t_promoted - t_promote)}
+        report.stage_s.update({f"trainer {k}": float(v) for k, v in _stage_times(done).items()})
+        if fly_after:
+            self.log("promoted; flying the lemniscate again, in the same world as the first")
+            since = restart_world(self.probe, self.cmd)
+            self.cmd("recorder", "start")
+            second_run = fly_lemniscate(self.probe, self.cmd, since)
+            report.lemniscate_start_t_s.append(second_run.start_t_s)
+            report.canary = self.probe.get("network")[-1].canary.get("last", "")
+            analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report)
+        return report
+
+    def record_first_lemniscate(self) -> tuple[Run, float]:
+        """The base network flies the lemniscate, recorded; the recording is stopped (and its path kept)."""
+        probe, cmd = self.probe, self.cmd
+        self.log("flying the lemniscate under Neural-ESO with the base network, recording")
         first_run = fly_lemniscate(probe, cmd, restart_world(probe, cmd))
-        report.lemniscate_start_t_s.append(first_run.start_t_s)
+        self.report.lemniscate_start_t_s.append(first_run.start_t_s)
         path = probe.wait_for("recording", lambda m: m.recording and m.path and m.stamp_s > first_run.since_s, 5.0).path
         t_stop = time.monotonic()
         reply = cmd("recorder", "stop")
         assert reply.ok, reply.message
         probe.wait_for("recording", lambda m: not m.recording and m.stamp_s > t_stop, 10.0)
-        report.recording = path
-        log(f"recorded {path}; training TDR from it")
+        self.report.recording = path
+        return first_run, t_stop
+
+    def train(self, epochs: int, force_offer: bool) -> tuple[str, float]:
+        """The trainer's TDR job on the recording; its done event and when it was asked."""
+        self.log(f"recorded {self.report.recording}; training TDR from it")
         t_train = time.monotonic()
-        reply = cmd("trainer", "train", recordings=[path], epochs=epochs, force_offer=force_offer)
+        reply = self.cmd("trainer", "train", recordings=[self.report.recording], epochs=epochs, force_offer=force_offer)
         assert reply.ok, reply.message
         job = reply.message.split()[1]
-        done = events.wait(lambda t: t.startswith(f"job {job} done") or t.startswith(f"job {job} failed"), 300.0)
-        report.trainer_summary = done
+        done = self.events.wait(lambda t: t.startswith(f"job {job} done") or t.startswith(f"job {job} failed"), 300.0)
+        self.report.trainer_summary = done
         if not done.startswith(f"job {job} done"):
             raise RuntimeError(f"training failed: {done}")
-        _registry_figures(registry, report)
-        report.offered = "offer accepted" in done
-        if not report.offered:  # predicted to fly worse (or refused): the base network flies on
-            log(f"candidate not offered: {done}")
-            if fly_after:
-                second_run = fly_lemniscate(probe, cmd, restart_world(probe, cmd))
-                first_run = replace(first_run, until_s=second_run.since_s)
-                report.lemniscate_start_t_s.append(second_run.start_t_s)
-                refs, truths = probe.get("reference"), probe.get("truth")
-                report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
-                report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
-                report.improvement = 1.0 - report.rmse_after_cm / report.rmse_before_cm
-            events.close()
-            probe.close()
-            return report
-        t_offered = time.monotonic()
+        return done, t_train
+
+    def fly_base_again(self, first_run: Run) -> None:
+        """Nothing was offered: the same network flies the same world again (the pairing's own noise)."""
+        report, probe = self.report, self.probe
+        second_run = fly_lemniscate(probe, self.cmd, restart_world(probe, self.cmd))
+        first_run = replace(first_run, until_s=second_run.since_s)
+        report.lemniscate_start_t_s.append(second_run.start_t_s)
+        refs, truths = probe.get("reference"), probe.get("truth")
+        report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
+        report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
+        report.improvement = 1.0 - report.rmse_after_cm / report.rmse_before_cm
+
+    def shadow_and_promote(self, force: bool) -> tuple[int, float, float]:
+        """2 s of shadow, then promote; the first sample the candidate flew and the promotion's times."""
+        probe, report = self.probe, self.report
         cand = probe.wait_for("network", lambda m: m.candidate.get("state") == "shadow", 5.0).candidate
         report.network_id = cand["id"]
-        log(f"candidate {cand['id']} in shadow; promoting")
+        self.log(f"candidate {cand['id']} in shadow; promoting")
         time.sleep(2.0)  # shadow: predicting beside the active network
         shadow = probe.get("network")[-1]
         report.shadow_error_rms_mps2 = shadow.shadow_error_rms_mps2
         report.active_error_rms_mps2 = shadow.candidate.get("active_error_rms_mps2", float("nan"))
         before = probe.get("estimate")[-1].seq
         t_promote = time.monotonic()
-        reply = cmd("estimator", "promote", force=force_offer)
+        reply = self.cmd("estimator", "promote", force=force)
         assert reply.ok, reply.message
         probe.wait_for("estimate", lambda m: m.network_id == cand["id"] and m.seq > before, 5.0)
         t_promoted = time.monotonic()
         swap_seq = min(m.seq for m in probe.get("estimate") if m.network_id == cand["id"])
-        report.stage_s = {"stop recording": t_train - t_stop, "train job (dataset, train, certify, predict, store, offer)":
-                          t_offered - t_train, "promote": t_promoted - t_promote,
-                          "recording stopped -> promoted (without the 2 s shadow)":
-                          (t_offered - t_stop) + (t_promoted - t_promote)}
-        report.stage_s.update({f"trainer {k}": float(v) for k, v in _stage_times(done).items()})
-        if not fly_after:
-            events.close()
-            probe.close()
-            return report
-        log("promoted; flying the lemniscate again, in the same world as the first")
-        since = restart_world(probe, cmd)
-        cmd("recorder", "start")
-        second_run = fly_lemniscate(probe, cmd, since)
-        first_run = replace(first_run, until_s=second_run.since_s)
-        report.lemniscate_start_t_s.append(second_run.start_t_s)
-        report.canary = probe.get("network")[-1].canary.get("last", "")
-        analyse(probe, first_run, second_run, swap_seq, report)
-        events.close()
-        probe.close()
-        return report
-    finally:
-        session.close()
-        interrupt(up, timeout_s=20.0)
-        up_log.close()
+        return swap_seq, t_promote, t_promoted
 
 
 def _registry_figures(registry: str, report: TdrReport) -> None:
