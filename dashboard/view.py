@@ -96,35 +96,7 @@ class DashboardView:
             self.figures = gui.add_markdown("")
             self.events = gui.add_markdown("")
         with tabs.add_tab("Control"):
-            self.reply = gui.add_markdown("_no action yet_")
-            self.pathway_dd = gui.add_dropdown("Pathway", PATHWAYS, initial_value="neural_eso")
-            self.pathway_dd.on_update(self._on_pathway)
-            self.confirm_text = gui.add_markdown("", visible=False)
-            self.confirm_btn = gui.add_button("Confirm pathway switch", color="red", visible=False)
-            self.cancel_btn = gui.add_button("Cancel", visible=False)
-            self.confirm_btn.on_click(lambda _: self._confirm_pathway(True))
-            self.cancel_btn.on_click(lambda _: self._confirm_pathway(False))
-            self.lip_in = gui.add_number("L_N (physical)", 0.5, min=1e-4, max=100.0, step=1e-4)
-            self.lip_override = gui.add_checkbox("Override certificate (L_N)", False)
-            self.lip_btn = gui.add_button("Apply L_N")
-            self.lip_btn.on_click(lambda _: self._apply_lipschitz())
-            with gui.add_folder("Mission"):
-                for label, name, color in MISSIONS:
-                    b = gui.add_button(label, color=color)
-                    b.on_click(lambda _, name=name: self._mission(name))
-            with gui.add_folder("PX4 vehicle (gateway)", expand_by_default=False):
-                for label, name, color in PX4_COMMANDS:
-                    b = gui.add_button(label, color=color)
-                    b.on_click(lambda _, name=name: self._px4(name))
-            with gui.add_folder("Scenario (simulator)"):
-                self.scenario_dd = gui.add_dropdown("Scenario", tuple(SCENARIOS), initial_value="nominal")
-                gui.add_button("Restart world with scenario").on_click(lambda _: self._scenario())
-            with gui.add_folder("Advanced: gains", expand_by_default=False):
-                self.gain_in = {p.name: gui.add_number(p.name, p.default, min=p.lo, max=p.hi, step=0.1)
-                                for p in CONTROLLER_PARAMS}
-                self.omega_in = gui.add_number("ω_o rad/s (start-up, read-only)", OMEGA_O_RPS, disabled=True)
-                self.gain_override = gui.add_checkbox("Override certificate (gains)", False)
-                gui.add_button("Apply gains").on_click(lambda _: self._apply_gains())
+            self._build_controls(gui)
         with tabs.add_tab("Services"):
             self.health = gui.add_markdown("")
             self.vehicle_status = gui.add_markdown("")
@@ -134,38 +106,73 @@ class DashboardView:
             for label, service, name in (("Train", "trainer", "train"), ("Promote candidate", "estimator", "promote"),
                                          ("Roll back", "estimator", "rollback")):
                 gui.add_button(label).on_click(lambda _, s=service, n=name: self._network_cmd(s, n))
-
         plots = gui.add_panel()
         with plots.add_tab("Live plots"):
-            self.pause = gui.add_checkbox("Pause plots", False, hint="freeze the plots (the flight goes on); "
-                                          "drag across a plot to zoom in time, double-click to zoom out")
-            self.paused_note = gui.add_markdown("", visible=False)
-            x_scale = {"x": {"time": False}}
-            axes = ({"size": 22, "ticks": {"size": 4}}, {"size": 44})
-
-            def plot(title: str, *series: dict):
-                """No title row: the plot is named in its legend, so five fit. With up to two series the
-                legend shows values on hover (the name rides on x: its value is the time); with more, names
-                only (values would wrap it to two lines), the name on the first series."""
-                live = len(series) <= 2
-                if not live:
-                    series = ({**series[0], "label": f"{title}: {series[0]['label']}"},) + series[1:]
-                return gui.add_uplot((np.zeros(2),) * (len(series) + 1),
-                                     ({"label": f"{title} · t (s)" if live else "t (s)"},) + series,
-                                     scales=x_scale, axes=axes, height=PLOT_HEIGHT_PX, padding=(8, 12, 0, 0),
-                                     legend={"live": live})
-
-            self.alt_plot = plot("Altitude (m)", _series("z", "#1f6fd0", 2), _series("z ref", "#f08c14", 2, [6, 4]))
-            self.err_plot = plot("z tracking error (cm)", _series("z − ref", "#d03030", 2))
-            self.dist_plot = plot("Disturbance z (m/s²)", _series("f_N", "#8e44ad"), _series("Δf̂", "#27ae60"),
-                                  _series("f̂", "#2c3e50", 2), _series("truth", "#aaaaaa", 1, [3, 3]))
-            self.thrust_plot = plot("Thrust (N)", _series("thrust", "#16a085", 2))
-            self.att_plot = plot("Attitude (°)", _series("roll", "#c2255c"),
-                                 _series("roll setpoint", "#c2255c", 1, [5, 3]), _series("pitch", "#1c7ed6"),
-                                 _series("pitch setpoint", "#1c7ed6", 1, [5, 3]))
+            self._build_plots(gui)
         plots.dock_left()
         plots.set_width(PLOTS_WIDTH_PX)
         self.server.on_client_connect(lambda client: client.camera.on_update(lambda _: self._on_camera(client)))
+
+    def _build_controls(self, gui) -> None:
+        """Pathway (with a confirmation for the risky ones), L_N, missions, PX4, scenario, gains."""
+        self.reply = gui.add_markdown("_no action yet_")
+        self.pathway_dd = gui.add_dropdown("Pathway", PATHWAYS, initial_value="neural_eso")
+        self.pathway_dd.on_update(self._on_pathway)
+        self.confirm_text = gui.add_markdown("", visible=False)
+        self.confirm_btn = gui.add_button("Confirm pathway switch", color="red", visible=False)
+        self.cancel_btn = gui.add_button("Cancel", visible=False)
+        self.confirm_btn.on_click(lambda _: self._confirm_pathway(True))
+        self.cancel_btn.on_click(lambda _: self._confirm_pathway(False))
+        self.lip_in = gui.add_number("L_N (physical)", 0.5, min=1e-4, max=100.0, step=1e-4)
+        self.lip_override = gui.add_checkbox("Override certificate (L_N)", False)
+        self.lip_btn = gui.add_button("Apply L_N")
+        self.lip_btn.on_click(lambda _: self._apply_lipschitz())
+        with gui.add_folder("Mission"):
+            for label, name, color in MISSIONS:
+                b = gui.add_button(label, color=color)
+                b.on_click(lambda _, name=name: self._mission(name))
+        with gui.add_folder("PX4 vehicle (gateway)", expand_by_default=False):
+            for label, name, color in PX4_COMMANDS:
+                b = gui.add_button(label, color=color)
+                b.on_click(lambda _, name=name: self._px4(name))
+        with gui.add_folder("Scenario (simulator)"):
+            self.scenario_dd = gui.add_dropdown("Scenario", tuple(SCENARIOS), initial_value="nominal")
+            gui.add_button("Restart world with scenario").on_click(lambda _: self._scenario())
+        with gui.add_folder("Advanced: gains", expand_by_default=False):
+            self.gain_in = {p.name: gui.add_number(p.name, p.default, min=p.lo, max=p.hi, step=0.1)
+                            for p in CONTROLLER_PARAMS}
+            self.omega_in = gui.add_number("ω_o rad/s (start-up, read-only)", OMEGA_O_RPS, disabled=True)
+            self.gain_override = gui.add_checkbox("Override certificate (gains)", False)
+            gui.add_button("Apply gains").on_click(lambda _: self._apply_gains())
+
+    def _build_plots(self, gui) -> None:
+        """Pause, then five time plots: altitude, z error, the disturbance's parts, thrust, attitude."""
+        self.pause = gui.add_checkbox("Pause plots", False, hint="freeze the plots (the flight goes on); "
+                                      "drag across a plot to zoom in time, double-click to zoom out")
+        self.paused_note = gui.add_markdown("", visible=False)
+        x_scale = {"x": {"time": False}}
+        axes = ({"size": 22, "ticks": {"size": 4}}, {"size": 44})
+
+        def plot(title: str, *series: dict):
+            """No title row: the plot is named in its legend, so five fit. With up to two series the
+            legend shows values on hover (the name rides on x: its value is the time); with more, names
+            only (values would wrap it to two lines), the name on the first series."""
+            live = len(series) <= 2
+            if not live:
+                series = ({**series[0], "label": f"{title}: {series[0]['label']}"},) + series[1:]
+            return gui.add_uplot((np.zeros(2),) * (len(series) + 1),
+                                 ({"label": f"{title} · t (s)" if live else "t (s)"},) + series,
+                                 scales=x_scale, axes=axes, height=PLOT_HEIGHT_PX, padding=(8, 12, 0, 0),
+                                 legend={"live": live})
+
+        self.alt_plot = plot("Altitude (m)", _series("z", "#1f6fd0", 2), _series("z ref", "#f08c14", 2, [6, 4]))
+        self.err_plot = plot("z tracking error (cm)", _series("z − ref", "#d03030", 2))
+        self.dist_plot = plot("Disturbance z (m/s²)", _series("f_N", "#8e44ad"), _series("Δf̂", "#27ae60"),
+                              _series("f̂", "#2c3e50", 2), _series("truth", "#aaaaaa", 1, [3, 3]))
+        self.thrust_plot = plot("Thrust (N)", _series("thrust", "#16a085", 2))
+        self.att_plot = plot("Attitude (°)", _series("roll", "#c2255c"),
+                             _series("roll setpoint", "#c2255c", 1, [5, 3]), _series("pitch", "#1c7ed6"),
+                             _series("pitch setpoint", "#1c7ed6", 1, [5, 3]))
 
     def _on_camera(self, client) -> None:
         """A page reported its camera: frame it on the vehicle (once)."""
