@@ -10,6 +10,7 @@ from dashboard.service import DashboardConfig
 from flight.controller import ControllerConfig
 from flight.estimator import EstimatorConfig
 from flight.source import SourceConfig
+from neso.types import OMEGA_O_RPS
 from runtime.options import add_options, config_from_options
 from services.px4_gateway import GatewayConfig
 from services.recorder import RecorderConfig
@@ -50,7 +51,7 @@ def test_help_shows_each_default_with_its_unit():
     _, parser = parse(EstimatorConfig, [])
     text = " ".join(parser.format_help().split())
     assert "--rate RATE sample rate (must match the source's) [Hz]; default 50.0" in text
-    assert "--omega-o OMEGA_O observer bandwidth [rad/s]; default 15.0" in text
+    assert f"--omega-o OMEGA_O observer bandwidth [rad/s]; default {OMEGA_O_RPS}" in text
     assert "--canary-window CANARY_WINDOW" in text
 
 
