@@ -24,18 +24,16 @@ Every table is also written to ``out/bench.json`` as it is printed (``{"tables":
 """
 from __future__ import annotations
 
-import json
-import os
 import sys
 import time
 import timeit
 
 import numpy as np
 
+from bench.table import RESULTS, print_table
 
-OUT_JSON = os.path.join("out", "bench.json")
+
 SIM_TARGET_X = 100.0  # the simulator must run at least this many times faster than real time
-RESULTS: dict = {"tables": []}
 
 
 def _per_call_us(fn, number: int) -> float:
@@ -86,58 +84,46 @@ def main(argv: list[str]) -> int:
         rows.append(("neso experiment paper --trials 5 (target < 60 s, limit 180 s)", f"{total:.1f} s"))
         for stage, secs in run.details["timing_s"].items():
             rows.append((f"  stage {stage}", f"{secs:.1f} s"))
-    _print_table(("benchmark", "result"), rows)
+    print_table(("benchmark", "result"), rows)
     print(flush=True)
-    _print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
+    print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
     print(FOOTNOTE)
     from bench.secure import COLUMNS as SECURE_COLUMNS, record, secure_rows
 
     print(flush=True)
     secure_results: dict = {}
-    _print_table(SECURE_COLUMNS, secure_rows(flight_s=6.0 if quick else 15.0, floor_s=3.0 if quick else 6.0,
+    print_table(SECURE_COLUMNS, secure_rows(flight_s=6.0 if quick else 15.0, floor_s=3.0 if quick else 6.0,
                                              rounds=1 if quick else 2, results=secure_results))
     record("secure", secure_results)
     from bench.recording import COLUMNS as RECORDING_COLUMNS, recording_rows
 
     print(flush=True)
-    _print_table(RECORDING_COLUMNS, recording_rows(quick))
+    print_table(RECORDING_COLUMNS, recording_rows(quick))
 
     from bench.tdr import COLUMNS as TDR_COLUMNS, tdr_rows
 
     print(flush=True)
-    _print_table(TDR_COLUMNS, tdr_rows(quick))
+    print_table(TDR_COLUMNS, tdr_rows(quick))
 
     from bench.gateway import COLUMNS as GATEWAY_COLUMNS, gateway_rows
 
     print(flush=True)
-    _print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
+    print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
 
     print(flush=True)
     from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows
 
-    _print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
+    print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
 
     print(flush=True)
     from bench.px4_import import COLUMNS as PX4_IMPORT_COLUMNS, px4_import_rows
 
-    _print_table(PX4_IMPORT_COLUMNS, px4_import_rows(quick))
+    print_table(PX4_IMPORT_COLUMNS, px4_import_rows(quick))
     from bench.certificate import print_tables
 
     print(flush=True)
-    print_tables(_print_table)
+    print_tables(print_table)
     return 0
-
-
-def _print_table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
-    """Left-aligned columns, two spaces apart, a rule under the header; the table also goes to
-    ``out/bench.json`` at once."""
-    widths = [max(len(str(r[i])) for r in (header, *rows)) for i in range(len(header))]
-    for row in (header, tuple("-" * w for w in widths), *rows):
-        print("  ".join(str(cell).ljust(w) for cell, w in zip(row, widths)).rstrip(), flush=True)
-    RESULTS["tables"].append({"columns": list(header), "rows": [[str(c) for c in r] for r in rows]})
-    os.makedirs(os.path.dirname(OUT_JSON), exist_ok=True)
-    with open(OUT_JSON, "w") as f:
-        json.dump(RESULTS, f, indent=2, ensure_ascii=False)
 
 
 if __name__ == "__main__":

@@ -111,6 +111,6 @@ def print_tables(table) -> None:
 
 
 if __name__ == "__main__":
-    from bench.__main__ import _print_table
+    from bench.table import print_table
 
-    print_tables(_print_table)
+    print_tables(print_table)

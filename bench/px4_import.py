@@ -14,14 +14,13 @@ under ``px4_import``.
 """
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
 
 COLUMNS = ("PX4 log import", "log", "states", "wall s (best)", "target")
 TARGET_S = 10.0
-BENCH_JSON = Path("out/bench.json")
+
 
 
 def _time_import(path: Path, out_dir: Path, repeats: int) -> tuple[float, int]:
@@ -60,19 +59,13 @@ def px4_import_rows(quick: bool = False) -> list[tuple[str, ...]]:
 
 
 def _merge_json(figures: dict) -> None:
-    """Put this section's figures into out/bench.json, keeping the other sections there."""
-    data = {}
-    if BENCH_JSON.exists():
-        try:
-            data = json.loads(BENCH_JSON.read_text())
-        except ValueError:
-            data = {}
-    data["px4_import"] = figures
-    BENCH_JSON.parent.mkdir(parents=True, exist_ok=True)
-    BENCH_JSON.write_text(json.dumps(data, indent=2) + "\n")
+    """Put this section's figures into out/bench.json beside the run's other figures."""
+    from bench.table import write_results
+
+    write_results({"px4_import": figures})
 
 
 if __name__ == "__main__":
-    from bench.__main__ import _print_table
+    from bench.table import print_table
 
-    _print_table(COLUMNS, px4_import_rows())
+    print_table(COLUMNS, px4_import_rows())

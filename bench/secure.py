@@ -18,7 +18,6 @@ credentials come from a real ``neso secure init`` in a temporary directory.
 """
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import tempfile
@@ -110,15 +109,8 @@ def secure_rows(flight_s: float, floor_s: float, rounds: int, results: dict | No
     return rows
 
 
-def record(section: str, data: dict, path: str = "out/bench.json") -> None:
-    """Put ``data`` under ``section`` in ``path`` (a JSON object; other sections kept)."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    try:
-        with open(path) as f:
-            everything = json.load(f)
-    except (FileNotFoundError, json.JSONDecodeError):
-        everything = {}
-    everything[section] = data
-    with open(path, "w") as f:
-        json.dump(everything, f, indent=2)
-        f.write("\n")
+def record(section: str, data: dict) -> None:
+    """Put ``data`` under ``section`` in out/bench.json beside the run's other figures."""
+    from bench.table import write_results
+
+    write_results({section: data})
