@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from flight import KEEP_SAMPLES
+from flight import forget_older
 from flight.mission import COMMANDS, Mission, MissionConfig
 from flight.ratecheck import RateCheck
 from neso.certificate import flight_certificate, max_certified_lipschitz_best
@@ -204,8 +204,7 @@ class ControllerCore:
         if est.seq < self._last_stepped:
             return []
         self._estimates[est.seq] = est
-        for old in [s for s in self._estimates if s < est.seq - KEEP_SAMPLES]:
-            del self._estimates[old]
+        forget_older(self._estimates, est.seq)
         if self.using_local and est.warm_ticks >= self.config.warmup_ticks:
             self.using_local = False
             self.events.append(("info", f"estimator back (warm for {est.warm_ticks} samples): flying on its f̂ again"))

@@ -58,7 +58,7 @@ from typing import Callable
 
 import numpy as np
 
-from flight import KEEP_SAMPLES
+from flight import forget_older
 from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
 from flight.ratecheck import RateCheck
 from neso.certificate import FlightCertificate, flight_certificate, max_certified_lipschitz_best
@@ -348,8 +348,7 @@ class EstimatorCore:
         applied = AppliedControl(acc_cmd_enu_mps2=np.array(sp.acc_cmd_enu_mps2), thrust_n=sp.thrust_n)
         self._applied[sp.seq] = applied
         self._latest_applied = applied
-        for old in [s for s in self._applied if s < sp.seq - KEEP_SAMPLES]:
-            del self._applied[old]
+        forget_older(self._applied, sp.seq)
         out = []
         while self._waiting and self._waiting[0].seq - 1 in self._applied:
             out += self._process(self._waiting.pop(0), now_s)
@@ -358,8 +357,7 @@ class EstimatorCore:
     def on_reference(self, ref: ReferenceMsg) -> None:
         """The controller's reference for sample ``seq``: the tracking error feeds the canary."""
         z = self._meas_z.pop(ref.seq, None)
-        for old in [s for s in self._meas_z if s < ref.seq - KEEP_SAMPLES]:
-            del self._meas_z[old]
+        forget_older(self._meas_z, ref.seq)
         segment, run = self._segment
         if ref.segment != segment:
             self._segment = (ref.segment, run + 1)

@@ -72,17 +72,25 @@ def limit_tilt(force_enu_n: np.ndarray, max_tilt_rad: float, min_up_n: float) ->
     return np.array([force_enu_n[0] * scale, force_enu_n[1] * scale, fz])
 
 
+def _cross(a, b) -> np.ndarray:
+    """a × b of two 3-vectors: the same products and differences as ``np.cross``, without its
+    per-call overhead (≈ 15 µs a call, most of the controller's time per sample)."""
+    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
+    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
+    return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+
+
 def attitude_from_force(force_enu_n: np.ndarray, yaw_rad: float) -> tuple[float, float, float, float]:
     """(thrust N, roll rad, pitch rad, yaw rad) with the body z axis along ``force_enu_n`` (3,)."""
     thrust_n = float(np.linalg.norm(force_enu_n))
     z_b = force_enu_n / thrust_n
     # x_b ⟂ the horizontal y axis at ψ_d keeps x_b in the vertical plane of heading ψ_d,
     # so the ZYX yaw of R_d is exactly ψ_d (building from x_c instead drifts it when tilted)
-    y_c = np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])
-    x_b = np.cross(y_c, z_b)
+    y_c = (-math.sin(yaw_rad), math.cos(yaw_rad), 0.0)
+    x_b = _cross(y_c, z_b)
     x_b /= np.linalg.norm(x_b)
-    y_b = np.cross(z_b, x_b)
-    world_from_desired = np.column_stack((x_b, y_b, z_b))
+    world_from_desired = np.empty((3, 3))
+    world_from_desired[:, 0], world_from_desired[:, 1], world_from_desired[:, 2] = x_b, _cross(z_b, x_b), z_b
     roll, pitch, yaw = euler_zyx_from_world_from_body(world_from_desired)
     return thrust_n, roll, pitch, yaw
 

@@ -581,5 +581,7 @@ def state_measurement(msg: StateMsg):
 
 
 def vec(x) -> tuple[float, ...]:
-    """A numpy vector as the tuple of floats a message field holds."""
+    """A numpy vector (or any sequence of numbers) as the tuple of floats a message field holds."""
+    if isinstance(x, np.ndarray) and x.dtype == np.float64:
+        return tuple(x.tolist())  # the same floats, without a Python loop
     return tuple(float(v) for v in x)

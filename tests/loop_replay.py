@@ -1,0 +1,50 @@
+"""The loop's step objects flown in one process, for the hot-path exactness test (tests/unit/test_hotpath_exact.py).
+
+:func:`fly` runs the simulator source, the estimator and the controller exactly as the bus wires them
+(state k → estimate k → setpoint k → the estimator's control for k+1 and the vehicle's next period) and
+returns every estimate's and setpoint's numbers as arrays. ``tests/data/loop-golden.npz`` holds what the
+code produced before the per-sample work of issue 16 (written by ``python -m tests.loop_replay OUT``)."""
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+
+def fly(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground", mission: str = "lemniscate") -> dict:
+    from flight.controller import ControllerConfig, ControllerCore
+    from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
+    from flight.source import SimSource, SourceConfig
+    from neso.control import ControlConfig
+
+    clock = lambda: 0.0  # noqa: E731 - stamps are not compared
+    source = SimSource(SourceConfig(rate_hz=rate_hz, scenario=scenario, seed=3), clock=clock)
+    config = EstimatorConfig(dt_s=1.0 / rate_hz)
+    network, path = load_flown_network(config.network)
+    estimator = EstimatorCore(config, network, NetworkChoice(network, path, None), clock=clock)
+    controller = ControllerCore(replace(ControllerConfig(mission=mission), control=ControlConfig(dt_s=1.0 / rate_hz)),
+                                clock=clock)
+    est_rows, sp_rows = [], []
+    for _ in range(n):
+        state, _truth = source.step()
+        estimate = estimator.on_state(state, 0.0)[0]
+        controller.on_state(state, 0.0)
+        setpoint, _ref = controller.on_estimate(estimate, 0.0)[0]
+        estimator.on_setpoint(setpoint, 0.0)
+        source.take(setpoint)
+        est_rows.append(estimate.f_hat_mps2 + estimate.f_n_mps2 + estimate.delta_f_hat_mps2 + estimate.z)
+        sp_rows.append((setpoint.roll_rad, setpoint.pitch_rad, setpoint.yaw_rad, setpoint.thrust_norm,
+                        setpoint.thrust_n) + setpoint.acc_cmd_enu_mps2)
+    return {"estimates": np.array(est_rows), "setpoints": np.array(sp_rows)}
+
+
+CASES = {"500hz": (500.0, 1500), "50hz": (50.0, 600)}
+
+
+if __name__ == "__main__":
+    out = {}
+    for name, (rate, n) in CASES.items():
+        for key, value in fly(rate, n).items():
+            out[f"{name}_{key}"] = value
+    np.savez_compressed(sys.argv[1], **out)
