@@ -1,6 +1,9 @@
 """``neso up``: the whole system on this machine, every role its own process, from the declared graph."""
 from __future__ import annotations
 
+import argparse
+import os
+
 from runtime.bus import DEFAULT_HUB, SECURE_HUB
 from runtime.graph import ROLES
 from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
@@ -41,6 +44,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
+    p.add_argument("--isolate", action=argparse.BooleanOptionalAction, default=(os.cpu_count() or 1) >= 2,
+                   help="pin the loop (hub, source, estimator, controller, px4_gateway) to CPUs 1… and everything "
+                        "else (recorder, trainer, dashboard) to CPU 0, so they never take the loop's CPU "
+                        "(default: on with 2 or more CPUs)")
     p.add_argument("--no-record", dest="record", action="store_false", help="no recorder (default: record every flight)")
     p.add_argument("--recordings-dir", default=RecorderConfig().directory, help="where the recorder writes flights")
     p.add_argument("--no-trainer", action="store_false", dest="trainer", help="do not start the trainer service")
@@ -125,8 +132,20 @@ def role_enabled(args, role) -> bool:
     return bool(getattr(args, role.enabled_by))
 
 
+LOOP_ROLES = ("hub", "source", "estimator", "controller", "px4_gateway")  # what a late sample waits for
+
+
+def cpu_sets(isolate: bool, n_cpus: int | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(the loop's CPUs, everything else's CPUs) for ``--isolate``; both empty (any CPU) when off or on one CPU."""
+    n_cpus = n_cpus or os.cpu_count() or 1
+    if not isolate or n_cpus < 2:
+        return (), ()
+    return tuple(range(1, n_cpus)), (0,)
+
+
 def build_specs(args) -> list[ProcessSpec]:
     vehicles = args.names or ["uav1"]
+    loop_cpus, other_cpus = cpu_sets(getattr(args, "isolate", False))
     specs = []
     for role in ROLES:
         if not role_enabled(args, role):
@@ -135,16 +154,18 @@ def build_specs(args) -> list[ProcessSpec]:
             argv = python_module_argv("cli.main", "run", role.name, "--listen", hub_endpoint(args), *secure_argv(args))
             if args.low_latency:
                 argv += ("--low-latency",)
-            specs.append(ProcessSpec(role.name, argv))
+            specs.append(ProcessSpec(role.name, argv, cpus=loop_cpus))
             continue
         if not role.per_vehicle:  # optional roles (enabled_by) are never the reason a flight stops
             specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0),
-                                     essential=not role.enabled_by, nice=10 if role.enabled_by else 0))
+                                     essential=not role.enabled_by, nice=10 if role.enabled_by else 0,
+                                     cpus=loop_cpus if role.name in LOOP_ROLES else other_cpus))
             continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
             finishes = role.name == "source" and args.duration > 0
-            specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes))
+            specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes,
+                                     cpus=loop_cpus if role.name in LOOP_ROLES else other_cpus))
     return specs
 
 
@@ -162,6 +183,10 @@ def run(args) -> int:
     security = " (secure: mutual TLS, access control)" if args.secure else ""
     print(f"neso up: hub {hub_endpoint(args)}{security}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
+    loop_cpus, other_cpus = cpu_sets(args.isolate)
+    if loop_cpus:
+        print(f"  CPUs:             loop (hub, source, estimator, controller, px4_gateway) on {list(loop_cpus)}, "
+              f"the rest on {list(other_cpus)} (--no-isolate: any)", flush=True)
     flag = " --secure" if args.secure else ""
     print(f"  live parameters:  neso params get estimator{flag} | neso params set estimator pathway=eso{flag}", flush=True)
     print(f"  missions:         neso cmd controller landing_test{flag}  (takeoff | hover | lemniscate | land | arm | hold | "

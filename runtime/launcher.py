@@ -4,7 +4,8 @@ Children are started in the order given, their output is echoed with the role's 
 front, and each gets ``PR_SET_PDEATHSIG`` so it dies with the launcher even if the launcher is
 killed with ``kill -9`` (no orphans). A child that exits while the launcher is running is
 restarted after ``restart_delay_s`` (at most ``max_restarts`` times); a child marked
-``finishes`` (the lockstep source) ends the whole run when it exits cleanly. ``stop()``
+``finishes`` (the lockstep source) ends the whole run when it exits cleanly. A child starts with its
+spec's niceness and CPU affinity (both inherited by everything it starts). ``stop()``
 sends SIGTERM to every child, waits up to ``stop_timeout_s``, then SIGKILLs what is left.
 """
 from __future__ import annotations
@@ -35,6 +36,7 @@ class ProcessSpec:
     finishes: bool = False  # its clean exit ends the run (instead of being restarted)
     essential: bool = True  # False: when it keeps crashing, give up on it alone and let the rest run
     nice: int = 0  # CPU niceness from the start (its imports included): >0 for what must not slow the loop
+    cpus: tuple[int, ...] = ()  # CPU affinity from the start (empty: any CPU)
 
 
 def interrupt(proc: subprocess.Popen, timeout_s: float = 15.0) -> None:
@@ -71,6 +73,8 @@ class Supervisor:
             _die_with_parent()
             if spec.nice:
                 os.nice(spec.nice)
+            if spec.cpus:
+                os.sched_setaffinity(0, spec.cpus)
         proc = subprocess.Popen(list(spec.argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
                                 preexec_fn=setup, text=True, bufsize=1)
         self.procs[spec.name] = proc

@@ -1,0 +1,45 @@
+"""``neso up --isolate``: the loop's processes on CPUs 1…, everything else on CPU 0, from their first instruction."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from cli.up import LOOP_ROLES, add_parser, build_specs, cpu_sets
+from runtime.launcher import ProcessSpec, Supervisor
+
+
+def up_args(*argv: str):
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    return parser.parse_args(["up", *argv])
+
+
+def test_cpu_sets_split_the_machine_and_do_nothing_on_one_cpu():
+    assert cpu_sets(True, 2) == ((1,), (0,))
+    assert cpu_sets(True, 8) == (tuple(range(1, 8)), (0,))
+    assert cpu_sets(True, 1) == ((), ())
+    assert cpu_sets(False, 8) == ((), ())
+
+
+def test_isolation_is_on_by_default_with_two_cpus_and_pins_every_role():
+    args = up_args("--name", "a", "--name", "b")
+    assert args.isolate == ((os.cpu_count() or 1) >= 2)
+    loop, other = cpu_sets(True)
+    specs = {s.name: s for s in build_specs(up_args("--isolate", "--name", "a", "--name", "b"))}
+    for name, spec in specs.items():
+        role = name.split("/")[-1]
+        assert spec.cpus == (loop if role in LOOP_ROLES else other), name
+    assert {"a/recorder", "b/trainer", "dashboard"} <= set(specs)
+    assert all(s.cpus == () for s in build_specs(up_args("--no-isolate")))
+
+
+def test_a_process_starts_with_its_affinity():
+    cpu = max(os.sched_getaffinity(0))
+    sup = Supervisor([ProcessSpec("pinned", (sys.executable, "-c", "import time; time.sleep(30)"), cpus=(cpu,))],
+                     echo=lambda line: None)
+    sup.start()
+    try:
+        assert os.sched_getaffinity(sup.procs["pinned"].pid) == {cpu}
+    finally:
+        sup.stop()
