@@ -13,6 +13,7 @@ Functions return seconds (names end in ``_s``); the table shows µs.
 """
 from __future__ import annotations
 
+import os
 import re
 import socket
 import subprocess
@@ -187,7 +188,7 @@ class PipelineRun:
 
 
 def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
-             secure_dir: str | None = None) -> PipelineRun:
+             secure_dir: str | None = None, env: dict | None = None) -> PipelineRun:
     """Fly ``neso up`` at ``rate_hz`` for ``DISCARD_S + flight_s`` on a free hub port and probe it
     (``extra_args``: more ``neso up`` options; ``secure_dir``: ``--secure`` with the credentials
     there, the probe presenting the ``operator`` certificate)."""
@@ -218,7 +219,8 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
         probe.declare_subscriber(keys.health("source"), on_health)
         run_s = DISCARD_S + flight_s
         proc = neso("up", "--hub", hub, "--rate", f"{rate_hz:g}", "--duration", f"{run_s:g}",
-                    "--scenario", "nominal_landing", "--mission", "hover", "--no-dashboard", *extra_args)
+                    "--scenario", "nominal_landing", "--mission", "hover", "--no-dashboard", *extra_args,
+                    env=None if env is None else dict(os.environ, **env))
         try:
             output = proc.communicate(timeout=run_s + 30.0)[0]
         except subprocess.TimeoutExpired:

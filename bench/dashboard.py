@@ -24,7 +24,6 @@ import os
 import threading
 import time
 
-import numpy as np
 
 from bench.bus_latency import latency_stats
 from runtime.bus import BusConfig
@@ -39,9 +38,9 @@ BROWSERS = 3
 COLUMNS = ("dashboard cost", "samples", "p50 ms", "p99 ms", "max ms", "notes")
 
 
-def _fly(flight_s: float, *, browsers: int, dashboard: bool | None = None) -> dict:
+def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_args: tuple[str, ...] = ()) -> dict:
     """One ``neso up`` run; with ``browsers`` > 0 the dashboard is on and that many pages watch it
-    (``dashboard=True`` with no browsers: the dashboard alone)."""
+    (``dashboard=True`` with no browsers: the dashboard alone; ``extra_args``: more ``neso up`` options)."""
     dashboard = browsers > 0 if dashboard is None else dashboard
     hub, web = f"tcp/127.0.0.1:{free_port()}", free_port()
     keys = Keys("uav1")
@@ -58,6 +57,7 @@ def _fly(flight_s: float, *, browsers: int, dashboard: bool | None = None) -> di
 
     args = ["up", "--hub", hub, "--rate", f"{RATE_HZ:g}", "--scenario", "nominal_landing", "--mission", "hover"]
     args += ["--dashboard-port", str(web)] if dashboard else ["--no-dashboard"]
+    args += list(extra_args)
     out: dict = {"dom_s": []}
     with session(BusConfig(connect=(hub,))) as probe:
         probe.declare_subscriber(keys.topic("setpoint"), on_setpoint)
@@ -145,9 +145,9 @@ def dashboard_rows(flight_s: float = 12.0) -> list[tuple[str, ...]]:
     and 3 Chromium pages on the same machine; the dashboard's CPU; then bus → DOM."""
     rows = []
     with_pages = f"with dashboard + {BROWSERS} Chromium pages on the same 2 cores"
-    runs = {"without dashboard": _fly(flight_s, browsers=0),
-            "with dashboard, no page open": _fly(flight_s, browsers=0, dashboard=True),
-            with_pages: _fly(flight_s, browsers=BROWSERS)}
+    runs = {"without dashboard": fly(flight_s, browsers=0),
+            "with dashboard, no page open": fly(flight_s, browsers=0, dashboard=True),
+            with_pages: fly(flight_s, browsers=BROWSERS)}
     def ms(latency_s):
         return latency_stats(latency_s, scale=1e3, fmt=".2f")
 

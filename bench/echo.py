@@ -9,7 +9,14 @@ every datagram back to its sender.
 ``estimator``, echoing ``neso/bench/state`` on ``neso/bench/estimate`` (keys the ACL lets a
 ``source`` and the ``estimator`` put); :func:`secure_config` says what each variant is.
 
-Both run until their stdin closes, then close their socket or session.
+``python -m bench.echo chain <role> <hub>``: one hop of the bare chain (:mod:`bench.hotpath`), a peer of the
+hub like a service: ``estimator`` puts an estimate-sized payload on ``bench/chain/estimate`` for every
+``bench/chain/state``; ``controller`` (also subscribed to the state, as the controller is) puts a
+setpoint-sized payload on ``bench/chain/setpoint`` for every estimate; both also take the setpoint (as the
+source and estimator do). Every payload is a real message of its topic with its first 8 bytes replaced by
+the state's stamp (float64), so the sizes are exactly the pipeline's. No decoding, no compute: the bus alone.
+
+All run until their stdin closes, then close their socket or session.
 """
 from __future__ import annotations
 
@@ -72,5 +79,29 @@ def _zenoh(port: int, secure_dir: str | None = None, variant: str = "acl") -> No
         sys.stdin.read()
 
 
+CHAIN = "bench/chain/"
+
+
+def _chain(role: str, hub: str) -> None:
+    from bench.payloads import payload
+    from runtime.bus import BusConfig, open_session
+
+    out_topic, in_topic = {"estimator": ("estimate", "state"), "controller": ("setpoint", "estimate")}[role]
+    body = payload(out_topic)[8:]
+    with open_session(BusConfig(connect=(hub,))) as session:
+        pub = session.declare_publisher(CHAIN + out_topic, express=True)
+        session.declare_subscriber(CHAIN + in_topic, lambda s: pub.put(s.payload.to_bytes()[:8] + body))
+        session.declare_subscriber(CHAIN + "setpoint", lambda s: None)
+        if role == "controller":
+            session.declare_subscriber(CHAIN + "state", lambda s: None)
+        print("ready", flush=True)
+        sys.stdin.read()
+
+
 if __name__ == "__main__":
-    _udp() if sys.argv[1] == "udp" else _zenoh(int(sys.argv[2]), *sys.argv[3:5])
+    if sys.argv[1] == "udp":
+        _udp()
+    elif sys.argv[1] == "chain":
+        _chain(sys.argv[2], sys.argv[3])
+    else:
+        _zenoh(int(sys.argv[2]), *sys.argv[3:5])

@@ -58,11 +58,12 @@ def hub(endpoint: str):
         yield s
 
 
-def neso(*args: str, **kwargs) -> subprocess.Popen:
-    """A `neso ...` subprocess in its own process group, output captured to a file-like pipe."""
+def neso(*args: str, env: dict | None = None, **kwargs) -> subprocess.Popen:
+    """A `neso ...` subprocess in its own process group, output captured to a file-like pipe (``env``:
+    the environment, default this one's)."""
     return subprocess.Popen([sys.executable, "-m", "cli.main", *args], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"), **kwargs)
+                            env=dict(env if env is not None else os.environ, PYTHONUNBUFFERED="1"), **kwargs)
 
 
 class NesoUp:
