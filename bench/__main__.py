@@ -5,6 +5,9 @@ tick; network inference at batch 1; and the whole ``neso experiment paper`` pipe
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
+Then the hot path (:mod:`bench.hotpath`, ~12 min; ``"bus"`` and ``"fleet"`` in ``out/bench.json``): a bare
+Zenoh chain with the pipeline's three hops beside the 500 Hz pipeline (isolation off and on), 50 Hz alone and
+with the dashboard and 3 Chromium pages (isolation off and on), and fleets of 1, 2, 4 and 8 vehicles.
 Then the secure bus (:mod:`bench.secure`, ~5 min): Zenoh ping-pong plain, over mutual TLS, with the
 ACL, and routed through a secure hub; the pipeline plain beside ``--secure``; at 500 and 50 Hz, two
 rotated rounds each; also into ``out/bench.json`` (``"secure"``).
@@ -30,7 +33,7 @@ import timeit
 
 import numpy as np
 
-from bench.table import RESULTS, print_table
+from bench.table import RESULTS, print_table, write_results
 
 
 SIM_TARGET_X = 100.0  # the simulator must run at least this many times faster than real time
@@ -88,6 +91,12 @@ def main(argv: list[str]) -> int:
     print(flush=True)
     print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
     print(FOOTNOTE)
+    from bench.hotpath import COLUMNS as HOTPATH_COLUMNS, hotpath_rows
+
+    print(flush=True)
+    hot: dict = {}
+    print_table(HOTPATH_COLUMNS, hotpath_rows(10.0 if quick else 60.0, hot, fleet_s=10.0 if quick else 30.0))
+    write_results(hot)
     from bench.secure import COLUMNS as SECURE_COLUMNS, record, secure_rows
 
     print(flush=True)

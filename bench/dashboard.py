@@ -27,7 +27,7 @@ import time
 
 from bench.bus_latency import latency_stats
 from runtime.bus import BusConfig
-from runtime.schema import EventMsg, Keys, SetpointMsg
+from runtime.schema import EventMsg, HealthMsg, Keys, SetpointMsg
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
 from tests.busutil import children_of, free_port, neso, session, stop
 
@@ -38,15 +38,22 @@ BROWSERS = 3
 COLUMNS = ("dashboard cost", "samples", "p50 ms", "p99 ms", "max ms", "notes")
 
 
-def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_args: tuple[str, ...] = ()) -> dict:
+def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_args: tuple[str, ...] = (),
+        browser_cpus: tuple[int, ...] = ()) -> dict:
     """One ``neso up`` run; with ``browsers`` > 0 the dashboard is on and that many pages watch it
-    (``dashboard=True`` with no browsers: the dashboard alone; ``extra_args``: more ``neso up`` options)."""
+    (``dashboard=True`` with no browsers: the dashboard alone; ``extra_args``: more ``neso up`` options;
+    ``browser_cpus``: pin Chromium there, as an operator would with ``taskset``)."""
     dashboard = browsers > 0 if dashboard is None else dashboard
     hub, web = f"tcp/127.0.0.1:{free_port()}", free_port()
     keys = Keys("uav1")
     lock = threading.Lock()
     rows: list[tuple[int, float, float, float]] = []  # seq, state stamp, setpoint stamp, received
     measuring = threading.Event()
+    source_misses: list[float] = []  # the source's own deadline-miss count, from its health while measuring
+
+    def on_source_health(sample) -> None:
+        if measuring.is_set():
+            source_misses.append(HealthMsg.from_bytes(sample.payload.to_bytes()).counters.get("deadline_misses", 0.0))
 
     def on_setpoint(sample) -> None:
         received = time.monotonic()
@@ -61,6 +68,7 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
     out: dict = {"dom_s": []}
     with session(BusConfig(connect=(hub,))) as probe:
         probe.declare_subscriber(keys.topic("setpoint"), on_setpoint)
+        probe.declare_subscriber(keys.health("source"), on_source_health)
         proc = neso(*args)
         lines: list[str] = []
         threading.Thread(target=_pump, args=(proc, lines), daemon=True).start()
@@ -72,7 +80,7 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
                     browser = launch(pw)
                     try:
                         pages = [open_dashboard(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
-                        with KeptReniced():
+                        with KeptReniced(cpus=browser_cpus):
                             cpu0 = _cpu_s(_dashboard_pid(proc.pid))
                             _measure(flight_s, measuring)
                             out["dashboard_cpu"] = (_cpu_s(_dashboard_pid(proc.pid)) - cpu0) / (WARMUP_S + flight_s)
@@ -92,6 +100,7 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
     out["pipeline_s"] = [r[3] - r[1] for r in data]
     out["controller_s"] = [r[2] - r[1] for r in data]
     out["misses"] = sum(x > 1.0 / RATE_HZ for x in out["pipeline_s"]) + (expected - len(data))
+    out["source_misses"] = int(source_misses[-1] - source_misses[0]) if len(source_misses) > 1 else None
     out["rate_hz"] = (len(data) - 1) / (data[-1][1] - data[0][1]) if len(data) > 1 else 0.0
     out["output"] = output
     return out

@@ -42,19 +42,22 @@ def _descendants(root: int) -> list[int]:
     return out
 
 
-def renice_browsers(nice: int = BROWSER_NICE) -> int:
+def renice_browsers(nice: int = BROWSER_NICE, cpus: tuple[int, ...] = ()) -> int:
     """Lower the CPU priority of every Chromium process this process started (call after opening
-    pages: renderers start with them). On an arena the operator's browser runs on another
-    machine; here it shares 2 cores with the control loop, and a software-rendered WebGL page
-    would otherwise take them. Returns how many processes were reniced."""
+    pages: renderers start with them), and pin it to ``cpus`` if given (``neso up --isolate`` keeps
+    the loop off them). On an arena the operator's browser runs on another machine; here it shares
+    2 cores with the control loop, and a software-rendered WebGL page would otherwise take them.
+    Returns how many processes were reniced."""
     n = 0
     for pid in _descendants(os.getpid()):
         with contextlib.suppress(FileNotFoundError, ProcessLookupError, PermissionError):  # exited meanwhile
             with open(f"/proc/{pid}/comm") as f:
                 if "chrom" not in f.read():
                     continue
-            for tid in os.listdir(f"/proc/{pid}/task"):  # niceness is per thread on Linux
+            for tid in os.listdir(f"/proc/{pid}/task"):  # niceness and affinity are per thread on Linux
                 os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+                if cpus:
+                    os.sched_setaffinity(int(tid), cpus)
             n += 1
     return n
 
@@ -63,16 +66,16 @@ class KeptReniced:
     """``with KeptReniced():`` re-applies :func:`renice_browsers` every ``period_s``: Chromium, run
     as root, lifts some of its threads back to nice −8 and 0 by itself."""
 
-    def __init__(self, period_s: float = 0.25) -> None:
-        self.period_s = period_s
+    def __init__(self, period_s: float = 0.25, cpus: tuple[int, ...] = ()) -> None:
+        self.period_s, self.cpus = period_s, cpus
         self._done = threading.Event()
 
     def _run(self) -> None:
         while not self._done.wait(self.period_s):
-            renice_browsers()
+            renice_browsers(cpus=self.cpus)
 
     def __enter__(self) -> "KeptReniced":
-        renice_browsers()
+        renice_browsers(cpus=self.cpus)
         threading.Thread(target=self._run, name="renice-chromium", daemon=True).start()
         return self
 
