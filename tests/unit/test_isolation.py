@@ -5,7 +5,7 @@ import argparse
 import os
 import sys
 
-from cli.up import LOOP_ROLES, add_parser, build_specs, cpu_sets
+from cli.up import LOOP_ROLES, add_parser, build_specs, cpu_sets, isolating
 from runtime.launcher import ProcessSpec, Supervisor
 
 
@@ -22,9 +22,12 @@ def test_cpu_sets_split_the_machine_and_do_nothing_on_one_cpu():
     assert cpu_sets(False, 8) == ((), ())
 
 
-def test_isolation_is_on_by_default_with_two_cpus_and_pins_every_role():
-    args = up_args("--name", "a", "--name", "b")
-    assert args.isolate == ((os.cpu_count() or 1) >= 2)
+def test_isolation_is_on_by_default_with_two_cpus_and_up_to_two_vehicles_and_pins_every_role():
+    assert isolating(up_args("--name", "a", "--name", "b"), n_cpus=2)
+    assert not isolating(up_args("--name", "a", "--name", "b", "--name", "c"), n_cpus=2)  # bench: 3+ share better
+    assert not isolating(up_args(), n_cpus=1)
+    assert isolating(up_args("--isolate", "--name", "a", "--name", "b", "--name", "c"), n_cpus=2)
+    assert not isolating(up_args("--no-isolate"), n_cpus=8)
     loop, other = cpu_sets(True)
     specs = {s.name: s for s in build_specs(up_args("--isolate", "--name", "a", "--name", "b"))}
     for name, spec in specs.items():
