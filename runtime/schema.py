@@ -27,7 +27,11 @@ Payloads are msgpack maps with ``v`` (schema version) and ``type``; every messag
 frozen dataclass whose fields carry a validator. :func:`decode` rejects, with
 :class:`SchemaError` naming the reason, anything that is not exactly a valid message of the
 expected type and version: bad msgpack, wrong type or version, missing or unknown fields,
-wrong shapes, non-finite or out-of-range numbers. Vectors travel as lists of float64, so a
+wrong shapes, non-finite or out-of-range numbers. Each validator also states its rule as a
+msgspec type (``wire``); a message whose fields all have one is decoded and checked by msgspec's
+compiled decoder (the loop's messages: ~1.5 µs instead of ~8), and anything msgspec refuses goes
+through the Python validators, which accept or name the reason exactly as before: the Python
+rules are the definition, msgspec only a faster way to accept what they accept. Vectors travel as lists of float64, so a
 round trip is bit-exact. ``seq`` is the sample number the message belongs to (a setpoint and
 an estimate carry the ``seq`` of the state they answer); ``stamp_s`` is ``time.monotonic()`` at
 publication (one clock for every process on a machine: latency is measured with it); ``t_s``
@@ -38,10 +42,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import sys
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Annotated, Any, Callable, ClassVar, Literal
 
 import msgpack
+import msgspec
 import numpy as np
 
 from neso.types import PATHWAYS, StateMeasurement
@@ -71,6 +77,15 @@ def valid_name(name: str, what: str = "name") -> str:
 
 
 # -- field validators: value from msgpack → value stored (raise SchemaError) ----------------------
+# Each also carries ``wire``: the same rule as a msgspec type (no ``wire``: only Python can say it).
+_FLOAT_MAX = sys.float_info.max
+
+
+def _wire(check: Callable, wire: Any) -> Callable:
+    check.wire = wire
+    return check
+
+
 def _number(lo: float = -math.inf, hi: float = math.inf) -> Callable[[Any], float]:
     def check(x: Any) -> float:
         if isinstance(x, bool) or not isinstance(x, (int, float)):
@@ -79,7 +94,8 @@ def _number(lo: float = -math.inf, hi: float = math.inf) -> Callable[[Any], floa
         if not math.isfinite(x) or not lo <= x <= hi:
             raise SchemaError(f"{x!r} is outside [{lo}, {hi}] or not finite")
         return x
-    return check
+    # the bounds clipped to the largest finite float exclude ±inf; NaN fails any bound
+    return _wire(check, Annotated[float, msgspec.Meta(ge=max(lo, -_FLOAT_MAX), le=min(hi, _FLOAT_MAX))])
 
 
 def _integer(lo: int = 0, hi: int = 2**63 - 1) -> Callable[[Any], int]:
@@ -87,7 +103,7 @@ def _integer(lo: int = 0, hi: int = 2**63 - 1) -> Callable[[Any], int]:
         if isinstance(x, bool) or not isinstance(x, int) or not lo <= x <= hi:
             raise SchemaError(f"expected an integer in [{lo}, {hi}], got {x!r}")
         return x
-    return check
+    return _wire(check, Annotated[int, msgspec.Meta(ge=lo, le=hi)])
 
 
 MAX_FEATURES = 16  # the longest network input a message carries
@@ -99,7 +115,7 @@ def _vector_upto(n_max: int, limit: float) -> Callable[[Any], tuple[float, ...]]
         if not isinstance(x, (list, tuple)) or len(x) > n_max:
             raise SchemaError(f"expected at most {n_max} numbers")
         return _vector(len(x), limit)(x)
-    return check
+    return _wire(check, Annotated[tuple[_number(-limit, limit).wire, ...], msgspec.Meta(max_length=n_max)])
 
 
 def _vector(n: int, limit: float) -> Callable[[Any], tuple[float, ...]]:
@@ -110,7 +126,7 @@ def _vector(n: int, limit: float) -> Callable[[Any], tuple[float, ...]]:
             raise SchemaError(f"expected a list of {n} numbers, got {type(x).__name__} of length "
                               f"{len(x) if isinstance(x, (list, tuple)) else '-'}")
         return tuple(element(v) for v in x)
-    return check
+    return _wire(check, tuple[(element.wire,) * n])
 
 
 def _text(choices: tuple[str, ...] | None = None, max_len: int = 256) -> Callable[[Any], str]:
@@ -120,13 +136,19 @@ def _text(choices: tuple[str, ...] | None = None, max_len: int = 256) -> Callabl
         if choices is not None and x not in choices:
             raise SchemaError(f"{x!r} is not one of {choices}")
         return x
-    return check
+    if choices is not None:
+        assert all(len(c) <= max_len for c in choices)
+        return _wire(check, Literal[tuple(choices)])
+    return _wire(check, Annotated[str, msgspec.Meta(max_length=max_len)])
 
 
 def _flag(x: Any) -> bool:
     if not isinstance(x, bool):
         raise SchemaError(f"expected true/false, got {type(x).__name__}")
     return x
+
+
+_flag.wire = bool
 
 
 def _plain(x: Any, depth: int = 0) -> Any:
@@ -165,6 +187,9 @@ def _numbers_by_name(x: Any) -> dict[str, float]:
     return out
 
 
+_numbers_by_name.wire = Annotated[dict[str, _number().wire], msgspec.Meta(max_length=256)]
+
+
 def f(check: Callable[[Any], Any], **kwargs) -> Any:
     """A message field with its validator."""
     return field(metadata={"check": check}, **kwargs)
@@ -194,6 +219,40 @@ class Message:
 
 def decode(cls: type[Message], data: bytes) -> Message:
     """The ``cls`` message in ``data``, or :class:`SchemaError` saying what is wrong."""
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise SchemaError(f"payload of {len(data)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    compiled = _COMPILED[cls] if cls in _COMPILED else _COMPILED.setdefault(cls, compile_decoder(cls))
+    if compiled is not None:
+        try:
+            return cls(*msgspec.structs.astuple(compiled.decode(data))[2:])  # [2:]: past v and type
+        except Exception:  # msgspec's errors, and UnicodeDecodeError for a bad string: the Python rules decide
+            pass  # and say why (or accept what msgspec is stricter about, e.g. ``v`` sent as 1.0)
+    return decode_python(cls, data)
+
+
+_COMPILED: dict[type, Any] = {}
+
+
+def compile_decoder(cls: type[Message]) -> msgspec.msgpack.Decoder | None:
+    """A msgspec decoder for ``cls``'s payloads that accepts only what :func:`decode_python` accepts, giving the
+    same values (a struct of ``v``, ``type`` and the fields in order); None when a field's rule has no ``wire``."""
+    fields: list[tuple] = [("v", Literal[SCHEMA_VERSION]), ("type", Literal[cls.TYPE])]
+    for fld in dataclasses.fields(cls):
+        wire = getattr(fld.metadata["check"], "wire", None)
+        if wire is None:
+            return None
+        if fld.default is not dataclasses.MISSING:
+            fields.append((fld.name, wire, fld.default))
+        elif fld.default_factory is not dataclasses.MISSING:
+            fields.append((fld.name, wire, msgspec.field(default_factory=fld.default_factory)))
+        else:
+            fields.append((fld.name, wire))
+    struct = msgspec.defstruct(f"{cls.__name__}Wire", fields, kw_only=True, forbid_unknown_fields=True)
+    return msgspec.msgpack.Decoder(struct)
+
+
+def decode_python(cls: type[Message], data: bytes) -> Message:
+    """:func:`decode` by the Python validators alone (the definition of the rules; the reason when refused)."""
     if len(data) > MAX_PAYLOAD_BYTES:
         raise SchemaError(f"payload of {len(data)} bytes exceeds {MAX_PAYLOAD_BYTES}")
     try:
