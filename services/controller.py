@@ -16,6 +16,7 @@ from runtime.options import add_options, config_from_options
 from runtime.params import ParamSet
 from runtime.schema import EstimateMsg, StateMsg
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_options(parser, ControllerConfig)
 

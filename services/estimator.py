@@ -20,6 +20,7 @@ from neso.control import ControlConfig
 from runtime.options import add_options, config_from_options
 from runtime.schema import EstimateMsg, ReferenceMsg, SetpointMsg, StateMsg
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_options(parser, EstimatorConfig)
 

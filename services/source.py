@@ -19,6 +19,7 @@ from flight.source import MocapSource, SimSource, SourceConfig, frame_matrix
 from runtime.options import add_options, config_from_options
 from runtime.schema import SetpointMsg, StateMsg
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_options(parser, SourceConfig)
 
