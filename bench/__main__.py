@@ -96,6 +96,10 @@ def main(argv: list[str]) -> int:
     print(flush=True)
     hot: dict = {}
     print_table(HOTPATH_COLUMNS, hotpath_rows(10.0 if quick else 60.0, hot, fleet_s=10.0 if quick else 30.0))
+    from bench.handlers import COLUMNS as HANDLER_COLUMNS, handler_rows
+
+    print(flush=True)
+    print_table(HANDLER_COLUMNS, handler_rows(10.0 if quick else 20.0, hot))  # into hot["bus"]
     write_results(hot)
     from bench.secure import COLUMNS as SECURE_COLUMNS, record, secure_rows
 

@@ -240,6 +240,9 @@ def main(argv: list[str]) -> int:
     results: dict = {}
     rows = hotpath_rows(10.0 if quick else 60.0, results, fleet_s=10.0 if quick else 30.0)
     print_table(COLUMNS, rows)
+    from bench.handlers import COLUMNS as HANDLER_COLUMNS, handler_rows
+
+    print_table(HANDLER_COLUMNS, handler_rows(10.0 if quick else 20.0, results))  # into results["bus"]
     write_results(results)
     return 0
 
