@@ -31,8 +31,8 @@ wrong shapes, non-finite or out-of-range numbers. Each validator also states its
 msgspec type (``wire``); a message whose fields all have one is decoded and checked by msgspec's
 compiled decoder (the loop's messages: ~1.5 µs instead of ~8), and anything msgspec refuses goes
 through the Python validators, which accept or name the reason exactly as before: the Python
-rules are the definition, msgspec only a faster way to accept what they accept. Vectors travel as lists of float64, so a
-round trip is bit-exact. ``seq`` is the sample number the message belongs to (a setpoint and
+rules are the definition, msgspec only a faster way to accept what they accept. Vectors travel
+as lists of float64, so a round trip is bit-exact. ``seq`` is the sample number the message belongs to (a setpoint and
 an estimate carry the ``seq`` of the state they answer); ``stamp_s`` is ``time.monotonic()`` at
 publication (one clock for every process on a machine: latency is measured with it); ``t_s``
 is the time the sample describes (simulation or vehicle time).
