@@ -44,6 +44,13 @@ class Flight(NesoUp):
     def _on_params(self, sample):
         self.param_states.append(ParamStateMsg.from_bytes(sample.payload.to_bytes()))
 
+    def wait_health(self, services, timeout_s=10.0):
+        """Until every one of ``services`` has reported its health once (1 Hz)."""
+        deadline = time.monotonic() + timeout_s
+        while not set(services) <= set(self.health):
+            assert time.monotonic() < deadline, f"no health from {set(services) - set(self.health)}"
+            time.sleep(0.05)
+
     def wait_flying(self, timeout_s=30.0):
         self.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 50, timeout_s)
 
@@ -182,6 +189,7 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_change_nothing(
                 payloads.append(p)  # only ever send what really is invalid
         counts[topic] = payloads
     pids = {r: flight.pid_of(r) for r in ("source", "estimator", "controller")}
+    flight.wait_health(pids)  # run alone, the test comes before the services' first reports
     before = {s: dict(h.rejected) for s, h in flight.health.items()}
     start = flight.latest_seq()
     import zenoh
