@@ -1,7 +1,8 @@
 """``python -m bench``: the method's and the simulator's speed, side by side in one run.
 
 Rows: simulator speed as a multiple of real time (hover, 20 s); the estimator + controller
-tick; network inference at batch 1; and the whole ``neso experiment paper`` pipeline
+tick; network inference at batch 1; the estimator's and the controller's step objects per sample as
+the services run them (:mod:`bench.steps`); and the whole ``neso experiment paper`` pipeline
 (``--trials 5``, all flights and trainings), which the issue wants under 3 min (target 60 s).
 Then the bus: end-to-end latency of ``neso up`` at 50 and 500 Hz against bare Zenoh and UDP
 ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trips per floor).
@@ -78,6 +79,12 @@ def main(argv: list[str]) -> int:
     tick_us, predict_us = bench_tick()
     rows.append(("estimator + controller tick (Neural-ESO)", f"{tick_us:.1f} µs"))
     rows.append(("network inference, batch 1 (5→20→25→10→1)", f"{predict_us:.1f} µs"))
+    from bench.steps import step_rows
+
+    steps: dict = {}
+    for name, best, median, target in step_rows(steps):
+        rows.append((f"{name} (500 Hz lemniscate, per sample; target {target})", f"{best} µs (median of 5: {median})"))
+    RESULTS["steps_us"] = steps
     if not quick:
         from sim.experiments import PaperConfig, run_paper
 

@@ -74,3 +74,14 @@ def test_nominal_acceleration_inverts_the_setpoint():
 def test_euler_round_trip():
     for r, p, y in [(0.1, -0.2, 0.3), (-0.5, 0.4, -2.0)]:
         assert np.allclose(euler_zyx_from_world_from_body(world_from_body_zyx(r, p, y)), (r, p, y))
+
+
+def test_attitude_from_force_agrees_with_the_rotation_it_describes_over_random_forces():
+    """The scalar mapping, checked against R_d rebuilt from its angles (tilts up to 60°, any heading)."""
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        force = np.array([*rng.uniform(-8, 8, 2), rng.uniform(5, 20)])
+        yaw = rng.uniform(-math.pi, math.pi)
+        thrust, roll, pitch, yaw_out = attitude_from_force(force, yaw)
+        np.testing.assert_allclose(world_from_body_zyx(roll, pitch, yaw_out)[:, 2] * thrust, force, atol=1e-12)
+        assert math.remainder(yaw_out - yaw, 2 * math.pi) == pytest.approx(0.0, abs=1e-12)
