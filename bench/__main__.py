@@ -9,6 +9,8 @@ ping-pongs (:mod:`bench.bus_latency`, ~3.5 min: 60 s flights, 15 s of round trip
 Then the hot path (:mod:`bench.hotpath`, ~12 min; ``"bus"`` and ``"fleet"`` in ``out/bench.json``): a bare
 Zenoh chain with the pipeline's three hops beside the 500 Hz pipeline (isolation off and on), 50 Hz alone and
 with the dashboard and 3 Chromium pages (isolation off and on), and fleets of 1, 2, 4 and 8 vehicles.
+Then Zenoh's transport choices for the loop — defaults, ``--priorities``, ``--low-latency`` — in rotated rounds
+beside the bare chain (:mod:`bench.transport`, ~8 min; ``bus.transport``).
 Then the secure bus (:mod:`bench.secure`, ~5 min): Zenoh ping-pong plain, over mutual TLS, with the
 ACL, and routed through a secure hub; the pipeline plain beside ``--secure``; at 500 and 50 Hz, two
 rotated rounds each; also into ``out/bench.json`` (``"secure"``).
@@ -107,6 +109,10 @@ def main(argv: list[str]) -> int:
 
     print(flush=True)
     print_table(HANDLER_COLUMNS, handler_rows(10.0 if quick else 20.0, hot))  # into hot["bus"]
+    from bench.transport import COLUMNS as TRANSPORT_COLUMNS, transport_rows
+
+    print(flush=True)
+    print_table(TRANSPORT_COLUMNS, transport_rows(10.0 if quick else 20.0, 1 if quick else 3, hot))  # hot["bus"]
     write_results(hot)
     from bench.secure import COLUMNS as SECURE_COLUMNS, record, secure_rows
 

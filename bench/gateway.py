@@ -104,5 +104,5 @@ def gateway_rows(duration_s: float = 20.0, rate_hz: float = 50.0) -> list[tuple[
     return [
         (f"setpoint on the bus → SET_ATTITUDE_TARGET at the vehicle, {rate_hz:g} Hz", *latency_stats(r["vehicle"]),
          f"{r['lost']} of {r['sent']} never arrived"),
-        (f"  bus alone (same setpoints → a probe subscriber)", *latency_stats(r["bus"]), "Zenoh delivery, for comparison"),
+        ("  bus alone (same setpoints → a probe subscriber)", *latency_stats(r["bus"]), "Zenoh delivery, for comparison"),
     ]

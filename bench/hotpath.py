@@ -53,8 +53,10 @@ def row(name: str, s: dict, notes: str = "") -> tuple[str, ...]:
     return (name, str(s["samples"]), us(s["p50_us"]), us(s["p99_us"]), us(s["max_us"]), str(s["misses"]), notes)
 
 
-def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmup_s: float = 1.0) -> dict:
-    """The bare three-hop chain at ``rate_hz`` for ``seconds`` (after ``warmup_s``): :func:`summary`."""
+def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmup_s: float = 1.0,
+               keep_samples: bool = False) -> dict:
+    """The bare three-hop chain at ``rate_hz`` for ``seconds`` (after ``warmup_s``): :func:`summary`
+    (with ``keep_samples``, also every latency in s under ``"latency_s"``)."""
     hub = f"tcp/127.0.0.1:{free_port()}"
     env = dict(os.environ, **(env or {}))
     hub_proc = neso("run", "hub", "--listen", hub, env=env)
@@ -105,17 +107,21 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
     with lock:
         latency = [received[t] - t for t in sent if t in received]
     lost = len(sent) - len(latency)
-    return summary(latency, sum(x > period_s for x in latency) + lost, len(sent))
+    out = summary(latency, sum(x > period_s for x in latency) + lost, len(sent))
+    return dict(out, latency_s=latency) if keep_samples else out
 
 
-def pipeline(rate_hz: float, seconds: float, extra_args: tuple[str, ...] = (), env: dict | None = None) -> dict:
-    """``neso up`` at ``rate_hz`` with the recorder on (into a temporary folder), no trainer, no dashboard."""
+def pipeline(rate_hz: float, seconds: float, extra_args: tuple[str, ...] = (), env: dict | None = None,
+             keep_samples: bool = False) -> dict:
+    """``neso up`` at ``rate_hz`` with the recorder on (into a temporary folder), no trainer, no dashboard:
+    :func:`summary` (with ``keep_samples``, also every latency in s under ``"latency_s"``)."""
     from bench.bus_latency import pipeline as fly
 
     with tempfile.TemporaryDirectory(prefix="neso-bench-rec-") as rec:
         run = fly(rate_hz, seconds, ("--no-trainer", "--recordings-dir", rec, *extra_args), env=env)
-    return summary(run.latency_s, run.probe_misses, len(run.latency_s) + run.probe_misses
-                   - sum(x > 1.0 / rate_hz for x in run.latency_s))
+    out = summary(run.latency_s, run.probe_misses, len(run.latency_s) + run.probe_misses
+                  - sum(x > 1.0 / rate_hz for x in run.latency_s))
+    return dict(out, latency_s=list(run.latency_s)) if keep_samples else out
 
 
 def _cpu_s(pids: list[int]) -> float:

@@ -86,7 +86,7 @@ def dataset_rows(flight_s: float, workdir: Path) -> list[tuple[str, ...]]:
     t0 = time.perf_counter()
     repair(path)
     t_compact = time.perf_counter() - t0
-    rows.append((f"compaction at flight end (rerun rrd optimize)", "", "", "", "",
+    rows.append(("compaction at flight end (rerun rrd optimize)", "", "", "", "",
                  f"{t_compact:.2f} s: {size_mb:.1f} → {path.stat().st_size / 1e6:.1f} MB"))
     t0 = time.perf_counter()
     ts2 = load_training_set(path, "tdr")

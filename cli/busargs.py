@@ -16,6 +16,8 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, default_mode: str = "p
     g.add_argument("--mode", default=default_mode, choices=("peer", "client", "router"))
     g.add_argument("--zenoh-config", default=None, help="a Zenoh JSON5 config file, applied before the options above")
     g.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport (every process must agree)")
+    g.add_argument("--priorities", action="store_true",
+                   help="publish the loop's streams at Zenoh's real-time priority, health and events at low priority")
     add_secure_arguments(g)
 
 
@@ -59,10 +61,10 @@ def bus_from_args(args, *, role: str = "peer", identity: str = "operator") -> Bu
         if role == "router":
             listen = tuple(args.listen or (args.connect or [hub])[:1])
             return BusConfig(connect=(), listen=listen, mode="router", config_file=args.zenoh_config,
-                             low_latency=args.low_latency, credentials=credentials)
+                             low_latency=args.low_latency, priorities=args.priorities, credentials=credentials)
         default_listen = () if args.mode == "client" else (listen_any,)  # a client only talks through the hub
         return BusConfig(connect=tuple(args.connect or (hub,)), listen=tuple(args.listen or default_listen),
                          mode=args.mode, config_file=args.zenoh_config, low_latency=args.low_latency,
-                         credentials=credentials)
+                         priorities=args.priorities, credentials=credentials)
     except ValueError as exc:
         raise SystemExit(f"error: {exc}") from None

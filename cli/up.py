@@ -51,6 +51,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
     p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
+    p.add_argument("--priorities", action="store_true",
+                   help="every process publishes the loop's streams at Zenoh's real-time priority, the rest lower")
     p.add_argument("--isolate", action=argparse.BooleanOptionalAction, default=None,
                    help="pin the loop (hub, source, estimator, controller, px4_gateway) to CPUs 1… and everything "
                         "else (recorder, trainer, dashboard) to CPU 0, so they never take the loop's CPU "
@@ -72,6 +74,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     common = ["--vehicle", vehicle, "--connect", hub_endpoint(args)] + secure_argv(args)
     if args.low_latency:
         common.append("--low-latency")
+    if args.priorities:
+        common.append("--priorities")
     if args.lockstep:
         common.append("--lockstep")
     specific: list[str] = []

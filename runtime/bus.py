@@ -33,6 +33,8 @@ class BusConfig:
     ``router`` (the hub), ``client`` (a tool that only talks through a router).
     ``config_file``: a Zenoh JSON5 config loaded first. ``low_latency``: Zenoh's
     ``transport/unicast/lowlatency`` (every session on the bus must agree; QoS off).
+    ``priorities``: the loop's streams published at Zenoh's real-time priority and health, events
+    and parameter broadcasts at low priority (:func:`publisher_qos`); off: all at Zenoh's default.
     """
 
     connect: tuple[str, ...] = (DEFAULT_HUB,)
@@ -40,6 +42,7 @@ class BusConfig:
     mode: str = "peer"
     config_file: str | None = None
     low_latency: bool = False
+    priorities: bool = False
     retry_period_init_ms: int = 100
     retry_period_max_ms: int = 500
     credentials: object = None  # runtime.secure.Credentials: TLS, mTLS and the ACL
@@ -95,6 +98,20 @@ class BusConfig:
 def hub_config(endpoint: str = DEFAULT_HUB, **overrides) -> BusConfig:
     """The hub: a router listening on ``endpoint`` and connecting to nothing."""
     return BusConfig(connect=(), listen=(endpoint,), mode="router", **overrides)
+
+
+def publisher_qos(config: BusConfig, stream: str) -> dict:
+    """``declare_publisher`` keyword arguments for ``stream``: a topic of ``runtime.schema.TOPICS``
+    or ``"service"`` (a service's health, events and parameter broadcasts)."""
+    import zenoh
+
+    from runtime.schema import LOOP_TOPICS
+
+    qos: dict = {} if stream == "service" else {"express": True}
+    if config.priorities and not config.low_latency:  # the lowlatency transport has no QoS
+        qos["priority"] = (zenoh.Priority.REAL_TIME if stream in LOOP_TOPICS else
+                           zenoh.Priority.DATA_LOW if stream == "service" else zenoh.Priority.DATA)
+    return qos
 
 
 def open_session(config: BusConfig):

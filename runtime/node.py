@@ -20,7 +20,7 @@ import time
 import traceback
 from typing import Any, Callable
 
-from runtime.bus import BusConfig, close_session, open_session
+from runtime.bus import BusConfig, close_session, open_session, publisher_qos
 from runtime.graph import ROLES, role as graph_role
 from runtime.health import HealthStats
 from runtime.params import ParamSet
@@ -94,10 +94,12 @@ class Node:
         self._stop = threading.Event()
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
+        self.bus = bus
         self.session = open_session(bus)
-        self._event_pub = self.session.declare_publisher(self.keys.event(service))
-        self._health_pub = self.session.declare_publisher(self.keys.health(service))
-        self._params_pub = self.session.declare_publisher(self.keys.params(service))
+        service_qos = publisher_qos(bus, "service")
+        self._event_pub = self.session.declare_publisher(self.keys.event(service), **service_qos)
+        self._health_pub = self.session.declare_publisher(self.keys.health(service), **service_qos)
+        self._params_pub = self.session.declare_publisher(self.keys.params(service), **service_qos)
 
     # -- streams ------------------------------------------------------------------------
     def publisher(self, topic: str) -> Callable[[Message], None]:
@@ -106,7 +108,7 @@ class Node:
         if cls is None:
             raise ValueError(f"{self.service} does not publish {topic!r} (runtime/graph.py)")
         if topic not in self._publishers:
-            self._publishers[topic] = self.session.declare_publisher(self.keys.topic(topic), express=True)
+            self._publishers[topic] = self.session.declare_publisher(self.keys.topic(topic), **publisher_qos(self.bus, topic))
         pub = self._publishers[topic]
 
         def put(msg: Message) -> None:

@@ -571,6 +571,9 @@ TOPICS: dict[str, type[Message]] = {
     "network": NetworkMsg,
     "replay": ReplayMsg,
 }
+# The control loop's streams (source → estimator → controller → source/vehicle): with the bus's
+# priorities on (runtime.bus.BusConfig.priorities) they travel at Zenoh's real-time priority.
+LOOP_TOPICS: tuple[str, ...] = ("state", "estimate", "setpoint")
 
 
 @dataclass(frozen=True)
