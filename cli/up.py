@@ -143,19 +143,27 @@ def role_enabled(args, role) -> bool:
     return bool(getattr(args, role.enabled_by))
 
 
-def isolating(args, n_cpus: int | None = None) -> bool:
-    """``--isolate`` as given, else on with 2 or more CPUs and at most :data:`ISOLATE_MAX_VEHICLES` vehicles."""
+def allowed_cpus() -> tuple[int, ...]:
+    """The CPUs this process may run on (a container or ``taskset`` may allow fewer than the machine has)."""
+    return tuple(sorted(os.sched_getaffinity(0)))
+
+
+def isolating(args, cpus: tuple[int, ...] | None = None) -> bool:
+    """``--isolate`` as given, else on with 2 or more CPUs (of ``cpus``, default :func:`allowed_cpus`) and at
+    most :data:`ISOLATE_MAX_VEHICLES` vehicles."""
     if args.isolate is not None:
         return args.isolate
-    return (n_cpus or os.cpu_count() or 1) >= 2 and len(args.names or ["uav1"]) <= ISOLATE_MAX_VEHICLES
+    return len(cpus or allowed_cpus()) >= 2 and len(args.names or ["uav1"]) <= ISOLATE_MAX_VEHICLES
 
 
-def cpu_sets(isolate: bool, n_cpus: int | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """(the loop's CPUs, everything else's CPUs) for ``--isolate``; both empty (any CPU) when off or on one CPU."""
-    n_cpus = n_cpus or os.cpu_count() or 1
-    if not isolate or n_cpus < 2:
+def cpu_sets(isolate: bool, cpus: tuple[int, ...] | None = None) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(the loop's CPUs, everything else's CPUs) for ``--isolate``, out of ``cpus`` (default
+    :func:`allowed_cpus`): the first for everything else, the rest for the loop; both empty (any CPU)
+    when off or on one CPU."""
+    cpus = tuple(sorted(cpus or allowed_cpus()))
+    if not isolate or len(cpus) < 2:
         return (), ()
-    return tuple(range(1, n_cpus)), (0,)
+    return cpus[1:], cpus[:1]
 
 
 def build_specs(args) -> list[ProcessSpec]:

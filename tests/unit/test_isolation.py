@@ -15,19 +15,22 @@ def up_args(*argv: str):
     return parser.parse_args(["up", *argv])
 
 
-def test_cpu_sets_split_the_machine_and_do_nothing_on_one_cpu():
-    assert cpu_sets(True, 2) == ((1,), (0,))
-    assert cpu_sets(True, 8) == (tuple(range(1, 8)), (0,))
-    assert cpu_sets(True, 1) == ((), ())
-    assert cpu_sets(False, 8) == ((), ())
+def test_cpu_sets_split_the_allowed_cpus_and_do_nothing_on_one_cpu():
+    assert cpu_sets(True, (0, 1)) == ((1,), (0,))
+    assert cpu_sets(True, tuple(range(8))) == (tuple(range(1, 8)), (0,))
+    assert cpu_sets(True, (0,)) == ((), ())
+    assert cpu_sets(False, tuple(range(8))) == ((), ())
+    # a container (or taskset) allowing CPUs 4 and 6 of a bigger machine: never a CPU it may not use
+    assert cpu_sets(True, (6, 4)) == ((6,), (4,))
+    assert set(sum(cpu_sets(True), ())) <= os.sched_getaffinity(0)
 
 
 def test_isolation_is_on_by_default_with_two_cpus_and_up_to_two_vehicles_and_pins_every_role():
-    assert isolating(up_args("--name", "a", "--name", "b"), n_cpus=2)
-    assert not isolating(up_args("--name", "a", "--name", "b", "--name", "c"), n_cpus=2)  # bench: 3+ share better
-    assert not isolating(up_args(), n_cpus=1)
-    assert isolating(up_args("--isolate", "--name", "a", "--name", "b", "--name", "c"), n_cpus=2)
-    assert not isolating(up_args("--no-isolate"), n_cpus=8)
+    assert isolating(up_args("--name", "a", "--name", "b"), cpus=(0, 1))
+    assert not isolating(up_args("--name", "a", "--name", "b", "--name", "c"), cpus=(0, 1))  # bench: 3+ share better
+    assert not isolating(up_args(), cpus=(3,))
+    assert isolating(up_args("--isolate", "--name", "a", "--name", "b", "--name", "c"), cpus=(0, 1))
+    assert not isolating(up_args("--no-isolate"), cpus=tuple(range(8)))
     loop, other = cpu_sets(True)
     specs = {s.name: s for s in build_specs(up_args("--isolate", "--name", "a", "--name", "b"))}
     for name, spec in specs.items():
