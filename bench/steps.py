@@ -1,6 +1,6 @@
 """The loop's step objects per sample, as the services run them (``python -m bench.steps``).
 
-One 500 Hz lemniscate flown through :func:`tests.loop_replay` records the messages; each core is then
+One 500 Hz lemniscate flown by :func:`tests.loop_replay.messages` gives the messages; each core is then
 timed alone on that sequence, fresh for each of 5 repeats (the best repeat counts: these are CPU
 costs, and a shared machine only adds to them): the estimator's ``on_state`` + ``on_setpoint`` and
 the controller's ``on_state`` + ``on_estimate``, in µs per sample. Messages are decoded before the
@@ -13,32 +13,6 @@ from dataclasses import replace
 COLUMNS = ("step object, per sample (500 Hz lemniscate)", "best of 5 (µs)", "median of 5 (µs)", "target (µs)")
 TARGET_US = 40.0
 RATE_HZ, SAMPLES, REPEATS = 500.0, 1500, 5
-
-
-def _messages() -> list[tuple]:
-    """(state, estimate, setpoint) of every sample of one flight, as the bus carries them."""
-    from flight.controller import ControllerConfig, ControllerCore
-    from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
-    from flight.source import SimSource, SourceConfig
-    from neso.control import ControlConfig
-
-    clock = lambda: 0.0  # noqa: E731 - stamps are not compared
-    source = SimSource(SourceConfig(rate_hz=RATE_HZ, scenario="lemniscate_near_ground", seed=3), clock=clock)
-    config = EstimatorConfig(dt_s=1.0 / RATE_HZ)
-    network, path = load_flown_network(config.network)
-    estimator = EstimatorCore(config, network, NetworkChoice(network, path, None), clock=clock)
-    controller = ControllerCore(replace(ControllerConfig(mission="lemniscate"), control=ControlConfig(dt_s=1.0 / RATE_HZ)),
-                                clock=clock)
-    out = []
-    for _ in range(SAMPLES):
-        state, _truth = source.step()
-        estimate = estimator.on_state(state, 0.0)[0]
-        controller.on_state(state, 0.0)
-        setpoint, _ref = controller.on_estimate(estimate, 0.0)[0]
-        estimator.on_setpoint(setpoint, 0.0)
-        source.take(setpoint)
-        out.append((state, estimate, setpoint))
-    return out
 
 
 def _time_estimator(messages) -> float:
@@ -70,7 +44,9 @@ def _time_controller(messages) -> float:
 def step_rows(results: dict | None = None) -> list[tuple]:
     import statistics
 
-    messages = _messages()
+    from tests.loop_replay import messages as fly
+
+    messages = fly(RATE_HZ, SAMPLES)
     rows = []
     for name, timer in (("estimator: on_state + on_setpoint", _time_estimator),
                         ("controller: on_state + on_estimate", _time_controller)):

@@ -1,8 +1,9 @@
 """The loop's step objects flown in one process, for the hot-path exactness test (tests/unit/test_hotpath_exact.py).
 
-:func:`fly` runs the simulator source, the estimator and the controller exactly as the bus wires them
-(state k → estimate k → setpoint k → the estimator's control for k+1 and the vehicle's next period) and
-returns every estimate's and setpoint's numbers as arrays. ``tests/data/loop-golden.npz`` holds what the
+:func:`messages` runs the simulator source, the estimator and the controller exactly as the bus wires them
+(state k → estimate k → setpoint k → the estimator's control for k+1 and the vehicle's next period);
+:func:`fly` returns every estimate's and setpoint's numbers as arrays (``bench.steps`` times the cores on
+:func:`messages`). ``tests/data/loop-golden.npz`` holds what the
 code produced before the per-sample work of issue 16 (written by ``python -m tests.loop_replay OUT``)."""
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ from dataclasses import replace
 import numpy as np
 
 
-def fly(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground", mission: str = "lemniscate") -> dict:
+def messages(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground",
+             mission: str = "lemniscate") -> list[tuple]:
+    """(state, estimate, setpoint) of each of ``n`` samples, flown as the bus wires the loop."""
     from flight.controller import ControllerConfig, ControllerCore
     from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
     from flight.source import SimSource, SourceConfig
@@ -25,7 +28,7 @@ def fly(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground", missio
     estimator = EstimatorCore(config, network, NetworkChoice(network, path, None), clock=clock)
     controller = ControllerCore(replace(ControllerConfig(mission=mission), control=ControlConfig(dt_s=1.0 / rate_hz)),
                                 clock=clock)
-    est_rows, sp_rows = [], []
+    out = []
     for _ in range(n):
         state, _truth = source.step()
         estimate = estimator.on_state(state, 0.0)[0]
@@ -33,9 +36,16 @@ def fly(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground", missio
         setpoint, _ref = controller.on_estimate(estimate, 0.0)[0]
         estimator.on_setpoint(setpoint, 0.0)
         source.take(setpoint)
-        est_rows.append(estimate.f_hat_mps2 + estimate.f_n_mps2 + estimate.delta_f_hat_mps2 + estimate.z)
-        sp_rows.append((setpoint.roll_rad, setpoint.pitch_rad, setpoint.yaw_rad, setpoint.thrust_norm,
-                        setpoint.thrust_n) + setpoint.acc_cmd_enu_mps2)
+        out.append((state, estimate, setpoint))
+    return out
+
+
+def fly(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground", mission: str = "lemniscate") -> dict:
+    """Every estimate's and setpoint's numbers of :func:`messages`, as arrays (n, 12) and (n, 8)."""
+    flown = messages(rate_hz, n, scenario, mission)
+    est_rows = [e.f_hat_mps2 + e.f_n_mps2 + e.delta_f_hat_mps2 + e.z for _s, e, _p in flown]
+    sp_rows = [(p.roll_rad, p.pitch_rad, p.yaw_rad, p.thrust_norm, p.thrust_n) + p.acc_cmd_enu_mps2
+               for _s, _e, p in flown]
     return {"estimates": np.array(est_rows), "setpoints": np.array(sp_rows)}
 
 
