@@ -4,7 +4,8 @@ The 500 Hz pipeline (``neso up --isolate``, recorder on) three ways, in rotated 
 drift of the shared machine falls on every variant alike: Zenoh's defaults (express publishers, the
 services' setting); ``--priorities`` (the loop's streams at real-time priority, health, events and
 parameter broadcasts at low); ``--low-latency`` (Zenoh's lowlatency unicast transport: no batching,
-no QoS). Beside them, once per round, the bare chain with the same three hops (:func:`bench.hotpath.bare_chain`).
+no QoS). Beside them, once per round, the bare chain with the same three hops
+(:func:`bench.hotpath.bare_chain`).
 Samples of all rounds are pooled per variant (each round's p99 and misses beside them); ``out/bench.json`` gets them under ``bus.transport``.
 """
 from __future__ import annotations

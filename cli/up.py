@@ -54,8 +54,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--priorities", action="store_true",
                    help="every process publishes the loop's streams at Zenoh's real-time priority, the rest lower")
     p.add_argument("--isolate", action=argparse.BooleanOptionalAction, default=None,
-                   help="pin the loop (hub, source, estimator, controller, px4_gateway) to CPUs 1… and everything "
-                        "else (recorder, trainer, dashboard) to CPU 0, so they never take the loop's CPU "
+                   help="pin the loop (hub, source, estimator, controller, px4_gateway) to all but the first CPU "
+                        "this may use (CPUs 1… on a whole machine) and everything else (recorder, trainer, "
+                        "dashboard) to that first one, so they never take the loop's CPU "
                         f"(default: on with 2 or more CPUs and at most {ISOLATE_MAX_VEHICLES} vehicles)")
     p.add_argument("--no-record", dest="record", action="store_false", help="no recorder (default: record every flight)")
     p.add_argument("--recordings-dir", default=RecorderConfig().directory, help="where the recorder writes flights")
@@ -212,7 +213,7 @@ def run(args) -> int:
               f"the rest on {list(other_cpus)} (--no-isolate: any)", flush=True)
         cpu_list = ",".join(map(str, other_cpus))
         print(f"  a browser here:   taskset -c {cpu_list} chromium ...  keeps it off the loop's CPUs "
-              f"(measured: 0 missed setpoints with 3 pages, 90 without)", flush=True)
+              "(README 'The hot path': what pages on the loop's CPU cost it)", flush=True)
     flag = " --secure" if args.secure else ""
     print(f"  live parameters:  neso params get estimator{flag} | neso params set estimator pathway=eso{flag}", flush=True)
     print(f"  missions:         neso cmd controller landing_test{flag}  (takeoff | hover | lemniscate | land | arm | hold | "

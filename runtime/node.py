@@ -108,7 +108,8 @@ class Node:
         if cls is None:
             raise ValueError(f"{self.service} does not publish {topic!r} (runtime/graph.py)")
         if topic not in self._publishers:
-            self._publishers[topic] = self.session.declare_publisher(self.keys.topic(topic), **publisher_qos(self.bus, topic))
+            self._publishers[topic] = self.session.declare_publisher(self.keys.topic(topic),
+                                                                     **publisher_qos(self.bus, topic))
         pub = self._publishers[topic]
 
         def put(msg: Message) -> None:
