@@ -236,3 +236,14 @@ def worst_case_run(inp, p: np.ndarray, e0: np.ndarray, *, dt_s: float = 1e-3, st
 def fixed_clock() -> float:
     """The step objects' clock in unit tests (``clock=``): a fixed 0 s, so their outputs are reproducible."""
     return 0.0
+
+
+def up_args(*argv: str):
+    """The parsed command line of ``neso up ARGV…`` (no processes started)."""
+    import argparse
+
+    from cli.up import add_parser
+
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    return parser.parse_args(["up", *argv])

@@ -6,7 +6,7 @@ import zenoh
 
 from runtime.bus import BusConfig, publisher_qos
 from runtime.schema import LOOP_TOPICS, TOPICS
-from tests.unit.test_isolation import up_args
+from tests.helpers import up_args
 
 
 def test_without_priorities_every_stream_keeps_zenohs_default_priority():

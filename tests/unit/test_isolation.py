@@ -1,18 +1,12 @@
 """``neso up --isolate``: the loop's processes on CPUs 1…, everything else on CPU 0, from their first instruction."""
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
-from cli.up import LOOP_ROLES, add_parser, build_specs, cpu_sets, isolating
+from cli.up import LOOP_ROLES, build_specs, cpu_sets, isolating
 from runtime.launcher import ProcessSpec, Supervisor
-
-
-def up_args(*argv: str):
-    parser = argparse.ArgumentParser()
-    add_parser(parser.add_subparsers())
-    return parser.parse_args(["up", *argv])
+from tests.helpers import up_args
 
 
 def test_cpu_sets_split_the_allowed_cpus_and_do_nothing_on_one_cpu():
