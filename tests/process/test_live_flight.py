@@ -227,7 +227,8 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_the_flight_goes
     # quiet ones between them. The flood is decoded on the loop's CPU — one CPU under `neso up --isolate`, the
     # default on 2 CPUs — so a few flooded samples may be flown on the controller's local ESO, which is what it is
     # for (measured: 0, 1, 4, 5, 18 of 250 in five runs isolated; 0, 0, 0 in three with --no-isolate, where
-    # the 500 Hz loop misses 3× more). Beyond the quiet count's own noise (3 sigma, Poisson) at most 15 %.
+    # the 500 Hz loop misses 2.6× more: README "The hot path"). Beyond the quiet count's own noise (3 sigma,
+    # Poisson) at most 15 %.
     flown = {m.seq for m in flight.probe.get("setpoint") if m.estimate_source == "estimator"}
     missed = {kind: sum(seq not in flown for first, end in ws for seq in range(first, end))
               for kind, ws in windows.items()}
