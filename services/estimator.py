@@ -12,6 +12,7 @@ answer (:class:`runtime.node.AnsweredOnce`), so a second rollback never undoes t
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 from flight.estimator import (EstimatorConfig, EstimatorCore, NetworkChoice, bound_phys, estimator_params,
@@ -34,7 +35,12 @@ def run(args, bus) -> int:
     from runtime.params import ParamSet
 
     config = config_from_args(args)
-    loaded, source = load_flown_network(config.network)
+    try:
+        loaded, source = load_flown_network(config.network)
+    except (OSError, ValueError) as exc:  # a missing or refused file is the user's to fix: one line, no traceback
+        print(f"[estimator] error: network {config.network!r}: {exc} (paths are relative to where neso runs; "
+              "--network FILE, or '' for none)", file=sys.stderr, flush=True)
+        return 2
     default_gains = (ControlConfig().kp[2], ControlConfig().kd[2])
     network, startup_event = startup_network(config, loaded, default_gains)
     choice = NetworkChoice(network, source if network is not None else "none", config.network_dir)

@@ -49,3 +49,11 @@ def test_what_if_with_a_negative_bound_is_refused_in_one_line_without_a_warning(
     out = neso_run("replay", "recordings/examples/nominal-landing-eso.rrd", "--what-if", "L_N=-1")
     assert out.returncode == 1 and out.stdout == "error: L_N=-1: must be a positive number\n", out.stdout
     assert out.stderr == "", out.stderr  # numpy's ComplexWarning leaked here
+
+
+def test_an_estimator_whose_network_file_is_missing_says_so_in_one_line(tmp_path):
+    missing = str(tmp_path / "nope.safetensors")
+    r = neso_run("run", "estimator", "--connect", "tcp/127.0.0.1:9", "--network", missing, timeout_s=60)
+    assert r.returncode == 2, r
+    assert "Traceback" not in r.stderr, r.stderr
+    assert f"[estimator] error: network {missing!r}" in r.stderr and "No such file" in r.stderr, r.stderr
