@@ -9,12 +9,14 @@
   recorder on) probed the same way: setpoint received − its state's stamp.
 - **with the dashboard and 3 Chromium pages** (:func:`bench.dashboard.fly`) at 50 Hz.
 - **fleet**: 1, 2, 4, 8 simulated vehicles on one bus at 50 Hz (each with its source, estimator, controller and
-  recorder): loop p99 and misses over all vehicles, CPU per vehicle.
+  recorder; isolated, shared, and shared with one estimator, controller and recorder process for all vehicles,
+  ``--process-per-role``): loop p99 and misses over all vehicles, CPU per vehicle.
 
 A miss: a setpoint not received within one period of its state's stamp, or never (at the probe, a
 process of its own); the dashboard rows also give the source's own count (a setpoint not there by its
 next sample: what the vehicle sees). The figures go to
-``out/bench.json`` under ``"bus"``, ``"fleet"`` and ``"fleet_no_isolation"`` (p50/p99 in µs).
+``out/bench.json`` under ``"bus"``, ``"fleet"``, ``"fleet_no_isolation"`` and ``"fleet_process_per_role"``
+(p50/p99 in µs).
 """
 from __future__ import annotations
 
@@ -36,6 +38,9 @@ from runtime.schema import SetpointMsg
 from tests.busutil import REPO, children_of, free_port, neso, session, stop
 
 COLUMNS = ("hot path", "samples", "p50 µs", "p99 µs", "max µs", "misses", "notes")
+# fleets: how `neso up` runs them → their key in out/bench.json
+FLEET_VARIANTS = (("--isolate", "fleet"), ("--no-isolate", "fleet_no_isolation"),
+                  ("--no-isolate --process-per-role", "fleet_process_per_role"))
 
 
 def summary(latency_s: list[float], misses: int, samples: int | None = None) -> dict:
@@ -228,11 +233,11 @@ def hotpath_rows(seconds: float, results: dict, fleet_sizes: tuple[int, ...] = (
             rows.append(row(f"pipeline 50 Hz + dashboard + {BROWSERS} pages, {isolate}, {where}", bus[key],
                             f"the source's own misses {run['source_misses']}; dashboard CPU "
                             f"{run.get('dashboard_cpu', float('nan')) * 100:.0f} % of a core"))
-    for isolate, key in (("--isolate", "fleet"), ("--no-isolate", "fleet_no_isolation")):
+    for how, key in FLEET_VARIANTS:
         fleet_out = results.setdefault(key, {})
         for n in fleet_sizes:
-            fleet_out[str(n)] = f = fleet(n, fleet_s, extra_args=(isolate,))
-            rows.append(row(f"fleet of {n} at 50 Hz (one bus, {isolate})", f, f"CPU per vehicle "
+            fleet_out[str(n)] = f = fleet(n, fleet_s, extra_args=tuple(how.split()))
+            rows.append(row(f"fleet of {n} at 50 Hz (one bus, {how})", f, f"CPU per vehicle "
                             f"{f['cpu_per_vehicle'] * 100:.0f} % of a core; heard {f['vehicles_heard']}/{n}"))
         zero = [n for n in fleet_sizes if fleet_out[str(n)]["misses"] == 0]
         fleet_out["largest_with_zero_misses"] = max(zero) if zero else 0

@@ -1,7 +1,12 @@
-"""``neso run <service>``: one role of the service graph alone, against a bus that may be elsewhere."""
+"""``neso run <service>``: one role of the service graph alone, against a bus that may be elsewhere.
+
+A per-vehicle role serves one vehicle (``--vehicle``), or several from this one process (``--vehicles
+a,b,c``: a thread per vehicle, each its own node and Zenoh session; a signal stops them all)."""
 from __future__ import annotations
 
+import copy
 import importlib
+import threading
 
 from cli.busargs import add_bus_arguments, bus_from_args
 from runtime.graph import GRAPH
@@ -14,10 +19,36 @@ def add_parser(subparsers) -> None:
         rp = roles.add_parser(role.name, help=role.description, description=role.description)
         add_bus_arguments(rp)
         rp.add_argument("--lockstep", action="store_true", help="deterministic lockstep with the simulator source")
+        if role.per_vehicle and role.bus_role != "router":
+            rp.add_argument("--vehicles", default="",
+                            help="serve these vehicles (comma-separated) from this one process instead of --vehicle")
         importlib.import_module(role.module).add_arguments(rp)
 
 
 def run(args) -> int:
     role = GRAPH[args.service]
     bus = bus_from_args(args, role=role.bus_role, identity=role.cert_name)
-    return importlib.import_module(role.module).run(args, bus)
+    module = importlib.import_module(role.module)
+    vehicles = [v for v in getattr(args, "vehicles", "").split(",") if v]
+    if not vehicles:
+        return module.run(args, bus)
+    return _run_many(module, args, bus, vehicles)
+
+
+def _run_many(module, args, bus, vehicles: list[str]) -> int:
+    """``module.run`` for each vehicle on a thread of its own; the worst exit code of them."""
+    from runtime.node import stop_all_on_signals
+
+    stop_all_on_signals()
+    codes: dict[str, int] = {}
+
+    def serve(vehicle: str) -> None:
+        one = copy.copy(args)
+        one.vehicle = vehicle
+        codes[vehicle] = module.run(one, bus)
+    threads = [threading.Thread(target=serve, args=(v,), name=f"{args.service}-{v}") for v in vehicles]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return max((codes.get(v, 1) for v in vehicles), default=0)

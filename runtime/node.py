@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 import traceback
+import weakref
 from typing import Any, Callable
 
 from runtime.bus import BusConfig, close_session, open_session, publisher_qos
@@ -28,6 +29,8 @@ from runtime.schema import (OFFER_COMMANDS, CommandReply, CommandRequest, EventM
                             ParamRequest, ParamStateMsg, SchemaError)
 
 HEALTH_PERIOD_S = 1.0
+_NODES: "weakref.WeakSet[Node]" = weakref.WeakSet()  # every node of this process: a signal stops them all
+_STOPPING = threading.Event()  # a signal came: a node made after it starts stopped
 CommandHandler = Callable[[str, dict], tuple[bool, str]]
 FAILED = (False, "command failed (see events)")
 
@@ -92,6 +95,9 @@ class Node:
         self._unlocked_commands: frozenset[str] = frozenset()
         self._answered = AnsweredOnce()
         self._stop = threading.Event()
+        if _STOPPING.is_set():
+            self._stop.set()
+        _NODES.add(self)
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
         self.bus = bus
@@ -284,9 +290,20 @@ class Node:
         close_session(self.session, self._declared)
 
     def stop_on_signals(self) -> None:
-        """SIGINT/SIGTERM end :meth:`wait` (call from the main thread)."""
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self._stop.set())
+        """SIGINT/SIGTERM end :meth:`wait` of every node of this process. Off the main thread (one
+        process serving several vehicles, ``neso run --vehicles``) the main thread has done it."""
+        if threading.current_thread() is threading.main_thread():
+            stop_all_on_signals()
+
+
+def stop_all_on_signals() -> None:
+    """SIGINT/SIGTERM stop every node of this process, those made later included (main thread only)."""
+    def stop(*_) -> None:
+        _STOPPING.set()
+        for node in list(_NODES):
+            node._stop.set()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, stop)
 
 
 def run_node(node: Node, main: Callable[[Node], None] | None = None) -> int:

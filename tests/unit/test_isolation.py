@@ -43,3 +43,21 @@ def test_a_process_starts_with_its_affinity():
         assert os.sched_getaffinity(sup.procs["pinned"].pid) == {cpu}
     finally:
         sup.stop()
+
+
+def test_from_three_vehicles_one_process_per_role_serves_them_all_sources_stay_per_vehicle():
+    from cli.up import PER_ROLE_FROM_VEHICLES, SHARED_ROLES, sharing_processes
+
+    names = [a for i in range(PER_ROLE_FROM_VEHICLES) for a in ("--name", f"v{i}")]
+    assert sharing_processes(up_args(*names))
+    assert not sharing_processes(up_args(*names[:-2]))  # one vehicle fewer: a process per vehicle and role
+    assert sharing_processes(up_args("--process-per-role", "--name", "a", "--name", "b"))
+    assert not sharing_processes(up_args("--process-per-role"))  # one vehicle: nothing to share
+    assert not sharing_processes(up_args("--no-process-per-role", *names))
+    specs = {s.name: s for s in build_specs(up_args(*names, "--no-dashboard"))}
+    vehicles = ",".join(f"v{i}" for i in range(PER_ROLE_FROM_VEHICLES))
+    for role in SHARED_ROLES:
+        argv = specs[role].argv
+        assert argv[argv.index("--vehicles") + 1] == vehicles, role
+    assert {f"v{i}/source" for i in range(PER_ROLE_FROM_VEHICLES)} <= set(specs)
+    assert not any(name.endswith(("/estimator", "/controller", "/recorder")) for name in specs)
