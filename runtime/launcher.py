@@ -132,15 +132,15 @@ class Supervisor:
     def stop(self) -> None:
         with self._lock:
             self._stopping = True
-        live = [p for p in reversed(list(self.procs.values())) if p.poll() is None]
-        for p in live:
+        live = [(name, p) for name, p in reversed(list(self.procs.items())) if p.poll() is None]
+        for _name, p in live:
             p.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + self.stop_timeout_s
-        for p in live:
+        for name, p in live:
             try:
                 p.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                self.echo(f"pid {p.pid} did not stop in {self.stop_timeout_s:.0f} s: killing it")
+                self.echo(f"{name} (pid {p.pid}) did not stop in {self.stop_timeout_s:.0f} s: killing it")
                 p.kill()
                 p.wait()
         self.echo("all processes stopped")
