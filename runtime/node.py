@@ -95,6 +95,7 @@ class Node:
         self._unlocked_commands: frozenset[str] = frozenset()
         self._answered = AnsweredOnce()
         self._stop = threading.Event()
+        self._closed = False  # under the lock: no handler runs once the session is closing
         if _STOPPING.is_set():
             self._stop.set()
         _NODES.add(self)
@@ -140,7 +141,8 @@ class Node:
                 return
             self.stats.valid(topic, received)
             with self.lock:
-                self._guarded(f"{topic} handler", handler, msg, received)
+                if not self._closed:
+                    self._guarded(f"{topic} handler", handler, msg, received)
 
         self._declared.append(self.session.declare_subscriber(self.keys.topic(topic), on_sample))
 
@@ -155,7 +157,8 @@ class Node:
                 self.stats.reject("params", str(exc))
                 return
             with self.lock:
-                self._guarded("params handler", handler, dict(msg.values))
+                if not self._closed:
+                    self._guarded("params handler", handler, dict(msg.values))
 
         self._declared.append(self.session.declare_subscriber(self.keys.params(service), on_sample))
 
@@ -287,6 +290,8 @@ class Node:
 
     def close(self) -> None:
         self._stop.set()
+        with self.lock:  # a handler running now ends first; none runs after (it would publish on a closed session)
+            self._closed = True
         close_session(self.session, self._declared)
 
     def stop_on_signals(self) -> None:
