@@ -39,8 +39,9 @@ from tests.busutil import REPO, children_of, free_port, neso, session, stop
 
 COLUMNS = ("hot path", "samples", "p50 µs", "p99 µs", "max µs", "misses", "notes")
 # fleets: how `neso up` runs them → their key in out/bench.json
-FLEET_VARIANTS = (("--isolate", "fleet"), ("--no-isolate", "fleet_no_isolation"),
-                  ("--no-isolate --process-per-role", "fleet_process_per_role"))
+FLEET_VARIANTS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (("--isolate",), "fleet"), (("--no-isolate",), "fleet_no_isolation"),
+    (("--no-isolate", "--process-per-role"), "fleet_process_per_role"))
 
 
 def summary(latency_s: list[float], misses: int, samples: int | None = None) -> dict:
@@ -236,8 +237,8 @@ def hotpath_rows(seconds: float, results: dict, fleet_sizes: tuple[int, ...] = (
     for how, key in FLEET_VARIANTS:
         fleet_out = results.setdefault(key, {})
         for n in fleet_sizes:
-            fleet_out[str(n)] = f = fleet(n, fleet_s, extra_args=tuple(how.split()))
-            rows.append(row(f"fleet of {n} at 50 Hz (one bus, {how})", f, f"CPU per vehicle "
+            fleet_out[str(n)] = f = fleet(n, fleet_s, extra_args=how)
+            rows.append(row(f"fleet of {n} at 50 Hz (one bus, {' '.join(how)})", f, f"CPU per vehicle "
                             f"{f['cpu_per_vehicle'] * 100:.0f} % of a core; heard {f['vehicles_heard']}/{n}"))
         zero = [n for n in fleet_sizes if fleet_out[str(n)]["misses"] == 0]
         fleet_out["largest_with_zero_misses"] = max(zero) if zero else 0

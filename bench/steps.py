@@ -8,7 +8,6 @@ clock starts (decoding has its own rows in :mod:`bench.payloads`)."""
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 COLUMNS = ("step object, per sample (500 Hz lemniscate)", "best of 5 (µs)", "median of 5 (µs)", "target (µs)")
 TARGET_US = 40.0
@@ -16,11 +15,9 @@ RATE_HZ, SAMPLES, REPEATS = 500.0, 1500, 5
 
 
 def _time_estimator(messages) -> float:
-    from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
+    from tests.loop_replay import estimator_core
 
-    config = EstimatorConfig(dt_s=1.0 / RATE_HZ)
-    network, path = load_flown_network(config.network)
-    core = EstimatorCore(config, network, NetworkChoice(network, path, None), clock=time.monotonic)
+    core = estimator_core(RATE_HZ, time.monotonic)
     t0 = time.perf_counter()
     for state, _estimate, setpoint in messages:
         core.on_state(state, 0.0)
@@ -29,11 +26,9 @@ def _time_estimator(messages) -> float:
 
 
 def _time_controller(messages) -> float:
-    from flight.controller import ControllerConfig, ControllerCore
-    from neso.control import ControlConfig
+    from tests.loop_replay import controller_core
 
-    core = ControllerCore(replace(ControllerConfig(mission="lemniscate"), control=ControlConfig(dt_s=1.0 / RATE_HZ)),
-                          clock=time.monotonic)
+    core = controller_core(RATE_HZ, "lemniscate", time.monotonic)
     t0 = time.perf_counter()
     for state, estimate, _setpoint in messages:
         core.on_state(state, 0.0)

@@ -169,7 +169,7 @@ def cpu_sets(isolate: bool, cpus: tuple[int, ...] | None = None) -> tuple[tuple[
     """(the loop's CPUs, everything else's CPUs) for ``--isolate``, out of ``cpus`` (default
     :func:`allowed_cpus`): the first for everything else, the rest for the loop; both empty (any CPU)
     when off or on one CPU."""
-    cpus = tuple(sorted(cpus or allowed_cpus()))
+    cpus = tuple(sorted(cpus)) if cpus else allowed_cpus()
     if not isolate or len(cpus) < 2:
         return (), ()
     return cpus[1:], cpus[:1]
@@ -184,6 +184,9 @@ def sharing_processes(args) -> bool:
 def build_specs(args) -> list[ProcessSpec]:
     vehicles = args.names or ["uav1"]
     loop_cpus, other_cpus = cpu_sets(isolating(args))
+
+    def cpus(role_name: str) -> tuple[int, ...]:
+        return loop_cpus if role_name in LOOP_ROLES else other_cpus
     specs = []
     for role in ROLES:
         if not role_enabled(args, role):
@@ -192,23 +195,23 @@ def build_specs(args) -> list[ProcessSpec]:
             argv = python_module_argv("cli.main", "run", role.name, "--listen", hub_endpoint(args), *secure_argv(args))
             if args.low_latency:
                 argv += ("--low-latency",)
-            specs.append(ProcessSpec(role.name, argv, cpus=loop_cpus))
+            specs.append(ProcessSpec(role.name, argv, cpus=cpus(role.name)))
             continue
         if not role.per_vehicle:  # optional roles (enabled_by) are never the reason a flight stops
             specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0),
                                      essential=not role.enabled_by, nice=10 if role.enabled_by else 0,
-                                     cpus=loop_cpus if role.name in LOOP_ROLES else other_cpus))
+                                     cpus=cpus(role.name)))
             continue
         if sharing_processes(args) and role.name in SHARED_ROLES:
             specs.append(ProcessSpec(role.name, (*service_argv(role.name, vehicles[0], args, 0), "--vehicles",
                                                  ",".join(vehicles)),
-                                     cpus=loop_cpus if role.name in LOOP_ROLES else other_cpus))
+                                     cpus=cpus(role.name)))
             continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
             finishes = role.name == "source" and args.duration > 0
             specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes,
-                                     cpus=loop_cpus if role.name in LOOP_ROLES else other_cpus))
+                                     cpus=cpus(role.name)))
     return specs
 
 

@@ -263,7 +263,7 @@ class ControllerCore:
             else:
                 self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
         used = None if local_f_hat else self._estimates[p.state.seq]
-        f_hat = self._pending_local if used is None else np.array(used.f_hat_mps2)
+        f_hat = self._pending_local if used is None else used.f_hat_mps2  # the step takes any 3 floats
         ref = self.mission.reference(p.state.t_s)
         if ref is not None and self.mission.landed(p.meas.pos_enu_m[2], p.state.t_s):
             ref = None

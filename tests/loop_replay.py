@@ -13,21 +13,32 @@ from dataclasses import replace
 import numpy as np
 
 
+def estimator_core(rate_hz: float, clock):
+    """The estimator's step object as the service builds it (the network it flies by default)."""
+    from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
+
+    config = EstimatorConfig(dt_s=1.0 / rate_hz)
+    network, path = load_flown_network(config.network)
+    return EstimatorCore(config, network, NetworkChoice(network, path, None), clock=clock)
+
+
+def controller_core(rate_hz: float, mission: str, clock):
+    """The controller's step object flying ``mission`` at ``rate_hz``."""
+    from flight.controller import ControllerConfig, ControllerCore
+    from neso.control import ControlConfig
+
+    return ControllerCore(replace(ControllerConfig(mission=mission), control=ControlConfig(dt_s=1.0 / rate_hz)),
+                          clock=clock)
+
+
 def messages(rate_hz: float, n: int, scenario: str = "lemniscate_near_ground",
              mission: str = "lemniscate") -> list[tuple]:
     """(state, estimate, setpoint) of each of ``n`` samples, flown as the bus wires the loop."""
-    from flight.controller import ControllerConfig, ControllerCore
-    from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
     from flight.source import SimSource, SourceConfig
-    from neso.control import ControlConfig
 
     clock = lambda: 0.0  # noqa: E731 - stamps are not compared
     source = SimSource(SourceConfig(rate_hz=rate_hz, scenario=scenario, seed=3), clock=clock)
-    config = EstimatorConfig(dt_s=1.0 / rate_hz)
-    network, path = load_flown_network(config.network)
-    estimator = EstimatorCore(config, network, NetworkChoice(network, path, None), clock=clock)
-    controller = ControllerCore(replace(ControllerConfig(mission=mission), control=ControlConfig(dt_s=1.0 / rate_hz)),
-                                clock=clock)
+    estimator, controller = estimator_core(rate_hz, clock), controller_core(rate_hz, mission, clock)
     out = []
     for _ in range(n):
         state, _truth = source.step()
