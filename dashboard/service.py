@@ -170,7 +170,10 @@ class Dashboard:
 
         from dashboard.model import FleetModel
         from dashboard.view import DashboardView
+        from dashboard.viser_threads import install
         from runtime.observer import Observer
+
+        install()  # before the server: its buffers are woken from our threads
 
         self.model = FleetModel(window_s=config.window_s)
         self.lock = threading.Lock()

@@ -6,7 +6,8 @@ on a loaded machine its steps ran back to back and the page froze for tens of se
 browser tests fail on one frozen page). Here a real :class:`dashboard.service.Dashboard` on a real
 Zenoh session gets 60 ms of extra Python work in each of its two renders (pose every step, panels every
 other; its period is 50 ms), as a CPU shared with other work makes them, and bus events must still show
-on the page in real headless Chromium.
+on the page in real headless Chromium. The page's senders (the server's and the page's own) are
+woken through :class:`dashboard.viser_threads.LoopEvent` (a lost wake-up froze a page for good).
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 
 from dashboard.service import Dashboard, DashboardConfig
+from dashboard.viser_threads import LoopEvent
 from runtime.bus import BusConfig, open_session
 from runtime.schema import EventMsg, Keys
 from tests.browser.chromium import dashboard_page, tab
@@ -65,6 +67,9 @@ def test_events_reach_the_page_while_every_render_overruns_its_period(slow_dashb
     assert EXTRA_RENDER_S > dash.period_s  # every step is late: the old loop ran back to back
     with dashboard_page(url) as (_browser, page):
         tab(page, "Flight")
+        websock = dash.server._websock_server
+        buffers = [websock._broadcast_buffer, *(c.message_buffer for c in websock._client_state_from_id.values())]
+        assert len(buffers) == 2 and all(isinstance(b.message_event, LoopEvent) for b in buffers)
         samples = []
         for i in range(8):
             marker = f"slow-render-{i}-{os.getpid()}"
