@@ -83,20 +83,66 @@ class KeptReniced:
         self._done.set()
 
 
+NOT_SERVING = ("ERR_CONNECTION_REFUSED", "ERR_CONNECTION_RESET", "ERR_EMPTY_RESPONSE")  # the server not up yet
+
+
+class PageWatch:
+    """What a page saw besides its DOM, for a failing wait to report: JavaScript errors, and the
+    websocket frames from the dashboard (so a frozen page says whether the server stopped sending
+    or the page stopped applying)."""
+
+    def __init__(self, page) -> None:
+        self.errors: list[str] = []
+        self.frames = 0
+        self.last_frame_s: float | None = None
+        self.sockets: list[str] = []
+        page.on("pageerror", lambda exc: self.errors.append(f"pageerror: {exc}"))
+        page.on("console", lambda msg: self.errors.append(f"console.{msg.type}: {msg.text}")
+                if msg.type == "error" else None)
+        page.on("websocket", self._on_socket)
+
+    def _on_socket(self, ws) -> None:
+        self.sockets.append(f"open {ws.url}")
+        ws.on("framereceived", self._on_frame)
+        ws.on("close", lambda _ws: self.sockets.append(f"closed {ws.url} at {time.monotonic():.1f}"))
+
+    def _on_frame(self, _payload) -> None:
+        self.frames += 1
+        self.last_frame_s = time.monotonic()
+
+    def report(self) -> str:
+        last = "never" if self.last_frame_s is None else f"{time.monotonic() - self.last_frame_s:.1f} s ago"
+        return (f"[page: {self.frames} websocket frames received, the last {last}; sockets {self.sockets}; "
+                f"{len(self.errors)} errors {self.errors[-5:]}]")
+
+
+def watch_of(page) -> str:
+    """The :class:`PageWatch` report of ``page`` ('' for a page opened without one)."""
+    w = getattr(page, "_neso_watch", None)
+    return w.report() if w is not None else ""
+
+
 def open_dashboard(browser, url: str, timeout_s: float = 40.0):
     """A 1600×1000 page on the dashboard at ``url``, once it shows its figures (retried while the
     server starts)."""
     page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    page._neso_watch = PageWatch(page)
+    from playwright.sync_api import Error as PlaywrightError
+
     deadline = time.monotonic() + timeout_s
-    while True:
+
+    def left_ms() -> float:
+        return max(1.0, (deadline - time.monotonic()) * 1e3)
+    while True:  # retried only while nothing answers: a starved browser's slow load is not restarted
         try:
-            page.goto(url, timeout=3000)
-            page.get_by_text("loop rate").wait_for(timeout=5000)
-            return page
-        except Exception:
-            if time.monotonic() > deadline:
+            page.goto(url, wait_until="commit", timeout=left_ms())
+            break
+        except PlaywrightError as exc:
+            if not any(e in str(exc) for e in NOT_SERVING) or time.monotonic() > deadline:
                 raise
             time.sleep(0.3)
+    page.get_by_text("loop rate").wait_for(timeout=left_ms())
+    return page
 
 
 @contextlib.contextmanager
@@ -135,7 +181,8 @@ def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
         if re.search(pattern, t):
             return t
         time.sleep(0.05)
-    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]}")
+    raise AssertionError(f"{pattern!r} not on the page within {timeout_s} s; page says: {text(page)[-1500:]} "
+                         f"{watch_of(page)}")
 
 
 STATUS_JS = """() => Object.fromEntries([...document.querySelectorAll('[data-slot]')]
@@ -156,7 +203,7 @@ def wait_status(page, slot: str, pattern: str, timeout_s: float = 10.0) -> str:
         if re.search(pattern, got):
             return got
         time.sleep(0.05)
-    raise AssertionError(f"status {slot} never matched {pattern!r}: {status(page)}")
+    raise AssertionError(f"status {slot} never matched {pattern!r}: {status(page)} {watch_of(page)}")
 
 
 def hide_notifications(page) -> None:

@@ -348,15 +348,17 @@ def test_screenshots_at_1600x1000_and_1280x800(flight):
 
 
 def setpoint_stream(flight, seconds: float) -> tuple[int, float]:
-    """(samples the controller skipped, largest gap between setpoints in s) over the next ``seconds``."""
+    """(samples the controller skipped, largest gap between setpoints in s) over the next ``seconds``.
+    The gap is between the controller's own stamps (one monotonic clock on this machine): when this
+    test process is starved its arrivals bunch up, which says nothing about the flight."""
     with flight.probe.lock:
         n0 = len(flight.probe.messages["setpoint"])
     time.sleep(seconds)
     with flight.probe.lock:
-        seqs = [m.seq for m in flight.probe.messages["setpoint"][n0:]]
-        arrivals = flight.probe.arrivals["setpoint"][n0:]
+        setpoints = flight.probe.messages["setpoint"][n0:]
+    seqs = [m.seq for m in setpoints]
     assert len(seqs) > seconds * 25, f"only {len(seqs)} setpoints in {seconds} s"
-    return seqs[-1] - seqs[0] + 1 - len(seqs), float(np.max(np.diff(arrivals)))
+    return seqs[-1] - seqs[0] + 1 - len(seqs), float(np.max(np.diff([m.stamp_s for m in setpoints])))
 
 
 def test_kill_the_dashboard_mid_flight_the_flight_goes_on_and_a_restart_picks_it_up(flight):
