@@ -253,6 +253,8 @@ def run(args, bus) -> int:
     import os
     import signal
 
+    from runtime.node import freeze_startup_heap
+
     config = config_from_options(DashboardConfig, args)
     if config.nice:
         os.nice(config.nice)
@@ -275,6 +277,7 @@ def run(args, bus) -> int:
     else:
         return 0
     holder.append(dash)
+    freeze_startup_heap()
     if stopping.is_set():
         dash.stop()
     print(f"[dashboard] serving http://{config.host}:{config.port}", flush=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 import json
 import os
 import signal
@@ -311,11 +312,21 @@ def stop_all_on_signals() -> None:
         signal.signal(sig, stop)
 
 
+def freeze_startup_heap() -> None:
+    """Move every object alive now (the imported modules: numpy, torch, cvxpy, zenoh; the node, its
+    network) out of the garbage collector's reach. They live as long as the process, yet each full
+    collection walked them all: 144 ms in an estimator-sized process (224,000 objects), a stall that
+    could land on any sample, and most of the CPU a service spent exiting (its final collection),
+    which under a CPU hog made ``neso up`` kill processes that did not stop in 2 s."""
+    gc.freeze()
+
+
 def run_node(node: Node, main: Callable[[Node], None] | None = None) -> int:
     """Start ``node``, run ``main(node)`` (or wait for a signal), always close the session."""
     try:
         node.stop_on_signals()
         node.start()
+        freeze_startup_heap()
         if main is None:
             node.wait()
         else:
