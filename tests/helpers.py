@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import struct
+import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -247,3 +249,23 @@ def up_args(*argv: str):
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
     return parser.parse_args(["up", *argv])
+
+
+def race_the_next_wait(loop, event, update) -> threading.Event:
+    """Run ``update()`` on another thread inside the next ``event.wait()`` on asyncio ``loop``, after
+    it found the event clear and before it registers its waiter (the window in which a thread-unsafe
+    ``set()`` loses the waiter). The returned event is set once it ran."""
+    ran = threading.Event()
+    original = loop.create_future
+
+    def create_future():
+        caller = sys._getframe(1)
+        if caller.f_code.co_name == "wait" and caller.f_locals.get("self") is event:
+            loop.create_future = original
+            other = threading.Thread(target=update)
+            other.start()
+            other.join()
+            ran.set()
+        return original()
+    loop.create_future = create_future
+    return ran

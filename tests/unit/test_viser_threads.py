@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import sys
 import threading
 
 import pytest
 
 from dashboard.viser_threads import LoopEvent
+from tests.helpers import race_the_next_wait
 
 
 @pytest.fixture
@@ -26,27 +26,12 @@ def loop():
     lp.close()
 
 
-def foreign_set_inside_wait(loop, event) -> None:
-    """The next ``event.wait()`` on ``loop`` runs a ``set()`` from another thread after it found the
-    event clear and before it registers its waiter."""
-    original = loop.create_future
-
-    def create_future():
-        caller = sys._getframe(1)
-        if caller.f_code.co_name == "wait" and caller.f_locals.get("self") is event:
-            loop.create_future = original
-            setter = threading.Thread(target=event.set)
-            setter.start()
-            setter.join()
-        return original()
-    loop.create_future = create_future
-
-
 def waits(loop, make_event) -> bool:
     """Whether a waiter hit by the race is woken, by that ``set()`` or a later one from another thread."""
     event = make_event(loop)
-    foreign_set_inside_wait(loop, event)
+    ran = race_the_next_wait(loop, event, event.set)
     woke = asyncio.run_coroutine_threadsafe(event.wait(), loop)
+    assert ran.wait(2.0), "the race did not run"
     try:
         woke.result(0.5)
         return True
