@@ -125,10 +125,10 @@ def watch_of(page) -> str:
 def open_dashboard(browser, url: str, timeout_s: float = 40.0):
     """A 1600×1000 page on the dashboard at ``url``, once it shows its figures (retried while the
     server starts)."""
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    page._neso_watch = PageWatch(page)
     from playwright.sync_api import Error as PlaywrightError
 
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    page._neso_watch = PageWatch(page)  # read by watch_of() when a wait fails
     deadline = time.monotonic() + timeout_s
 
     def left_ms() -> float:
