@@ -2,7 +2,7 @@
 thread exactly while the page's sender starts to wait (dashboard/viser_threads.py).
 
 With viser's own ``asyncio.Event`` the page never gets another update (what froze a CI page for over a
-minute); with :class:`dashboard.viser_threads.LoopEvent` it gets every one. The interleaving is forced (the
+minute); with :class:`dashboard.viser_threads.LoopEvent` it gets them. The interleaving is forced (the
 update runs while the sender's ``wait()`` creates its future), so neither outcome is luck."""
 from __future__ import annotations
 
