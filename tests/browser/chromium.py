@@ -83,9 +83,6 @@ class KeptReniced:
         self._done.set()
 
 
-NOT_SERVING = ("ERR_CONNECTION_REFUSED", "ERR_CONNECTION_RESET", "ERR_EMPTY_RESPONSE")  # the server not up yet
-
-
 class PageWatch:
     """What a page saw besides its DOM, for a failing wait to report: JavaScript errors, and the
     websocket frames from the dashboard (so a frozen page says whether the server stopped sending
@@ -133,12 +130,14 @@ def open_dashboard(browser, url: str, timeout_s: float = 40.0):
 
     def left_ms() -> float:
         return max(1.0, (deadline - time.monotonic()) * 1e3)
-    while True:  # retried only while nothing answers: a starved browser's slow load is not restarted
+    # A navigation fails fast while nothing serves (refused, or replaced by Chromium's error page): retried.
+    # It is given all the time left, so a starved browser's slow load is never cut short and restarted.
+    while True:
         try:
             page.goto(url, wait_until="commit", timeout=left_ms())
             break
-        except PlaywrightError as exc:
-            if not any(e in str(exc) for e in NOT_SERVING) or time.monotonic() > deadline:
+        except PlaywrightError:
+            if time.monotonic() > deadline:
                 raise
             time.sleep(0.3)
     page.get_by_text("loop rate").wait_for(timeout=left_ms())
