@@ -141,9 +141,7 @@ class Node:
                 self.stats.reject(topic, str(exc))
                 return
             self.stats.valid(topic, received)
-            with self.lock:
-                if not self._closed:
-                    self._guarded(f"{topic} handler", handler, msg, received)
+            self._handle(f"{topic} handler", handler, msg, received)
 
         self._declared.append(self.session.declare_subscriber(self.keys.topic(topic), on_sample))
 
@@ -157,11 +155,15 @@ class Node:
             except SchemaError as exc:
                 self.stats.reject("params", str(exc))
                 return
-            with self.lock:
-                if not self._closed:
-                    self._guarded("params handler", handler, dict(msg.values))
+            self._handle("params handler", handler, dict(msg.values))
 
         self._declared.append(self.session.declare_subscriber(self.keys.params(service), on_sample))
+
+    def _handle(self, what: str, handler: Callable, *args) -> None:
+        """A bus handler under the node lock, guarded; none once the node is closing."""
+        with self.lock:
+            if not self._closed:
+                self._guarded(what, handler, *args)
 
     def _guarded(self, what: str, fn: Callable, *args) -> Any:
         try:
