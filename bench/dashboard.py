@@ -26,6 +26,7 @@ import time
 
 
 from bench.bus_latency import latency_stats
+from bench.cpu import cpu_s
 from runtime.bus import BusConfig
 from runtime.schema import EventMsg, HealthMsg, Keys, SetpointMsg
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
@@ -81,9 +82,9 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
                     try:
                         pages = [open_dashboard(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
                         with KeptReniced(cpus=browser_cpus):
-                            cpu0 = _cpu_s(_dashboard_pid(proc.pid))
+                            cpu0 = cpu_s([_dashboard_pid(proc.pid)])
                             _measure(flight_s, measuring)
-                            out["dashboard_cpu"] = (_cpu_s(_dashboard_pid(proc.pid)) - cpu0) / (WARMUP_S + flight_s)
+                            out["dashboard_cpu"] = (cpu_s([_dashboard_pid(proc.pid)]) - cpu0) / (WARMUP_S + flight_s)
                             out["dom_s"] = _bus_to_dom(probe, keys, pages[0])
                     finally:
                         browser.close()
@@ -120,13 +121,6 @@ def _dashboard_pid(up_pid: int) -> int:
             if b"dashboard" in f.read().split(b"\0"):
                 return pid
     raise RuntimeError("no dashboard process under neso up")
-
-
-def _cpu_s(pid: int) -> float:
-    """User + system CPU seconds of ``pid`` so far."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _measure(flight_s: float, measuring: threading.Event) -> None:

@@ -30,6 +30,7 @@ import time
 
 import numpy as np
 
+from bench.cpu import cpu_s
 from bench.echo import CHAIN
 from bench.payloads import payload
 from cli.up import cpu_sets
@@ -130,19 +131,6 @@ def pipeline(rate_hz: float, seconds: float, extra_args: tuple[str, ...] = (), e
     return dict(out, latency_s=list(run.latency_s)) if keep_samples else out
 
 
-def _cpu_s(pids: list[int]) -> float:
-    """User + system CPU seconds so far of ``pids`` (a process that is gone counts 0)."""
-    total = 0.0
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-        except OSError:
-            pass
-    return total
-
-
 def fleet(n_vehicles: int, seconds: float, rate_hz: float = 50.0, warmup_s: float = 4.0,
           extra_args: tuple[str, ...] = ()) -> dict:
     """``n_vehicles`` on one bus (``neso up --name …``: each its source, estimator, controller, recorder;
@@ -173,11 +161,11 @@ def fleet(n_vehicles: int, seconds: float, rate_hz: float = 50.0, warmup_s: floa
         try:
             time.sleep(warmup_s + 0.5 * n_vehicles)
             pids = children_of(proc.pid)
-            cpu0, t0 = _cpu_s(pids), time.monotonic()
+            cpu0, t0 = cpu_s(pids), time.monotonic()
             measuring.set()
             time.sleep(seconds)
             measuring.clear()
-            cpu = (_cpu_s(pids) - cpu0) / (time.monotonic() - t0)
+            cpu = (cpu_s(pids) - cpu0) / (time.monotonic() - t0)
         finally:
             stop(proc, timeout_s=20)
     with lock:
