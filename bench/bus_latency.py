@@ -18,12 +18,14 @@ import re
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 
 import msgpack
 import numpy as np
 
+from bench.cpu import CpuWindow, roles_of
 from runtime.bus import BusConfig
 from runtime.schema import HealthMsg, Keys, SetpointMsg, StateMsg
 from tests.busutil import REPO, free_port, neso, session, stop
@@ -185,6 +187,7 @@ class PipelineRun:
     achieved_hz: float
     source_misses: int | None
     source_misses_after: int | None
+    cpu_us_per_sample: dict[str, float]  # role → µs of CPU per sample over most of the measured flight
 
 
 def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
@@ -203,11 +206,14 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
     arrivals: dict[int, tuple[float, float]] = {}  # seq → (state_stamp_s, received_s)
     status: list[tuple[int, int]] = []  # (sample, deadline misses) from the source's health
     discard_n = round(DISCARD_S * rate_hz)
+    measuring = threading.Event()  # past the discarded start: the CPU window opens
 
     def on_setpoint(sample) -> None:
         received_s = time.monotonic()
         msg = SetpointMsg.from_bytes(sample.payload.to_bytes())
         arrivals.setdefault(msg.seq, (msg.state_stamp_s, received_s))
+        if msg.seq >= discard_n:
+            measuring.set()
 
     def on_health(sample) -> None:
         match = _SOURCE_STATUS.search(HealthMsg.from_bytes(sample.payload.to_bytes()).status)
@@ -221,6 +227,7 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
         proc = neso("up", "--hub", hub, "--rate", f"{rate_hz:g}", "--duration", f"{run_s:g}",
                     "--scenario", "nominal_landing", "--mission", "hover", "--no-dashboard", *extra_args,
                     env=None if env is None else dict(os.environ, **env))
+        cpu = CpuWindow(lambda: roles_of(proc.pid), 0.8 * flight_s, measuring)
         try:
             output = proc.communicate(timeout=run_s + 30.0)[0]
         except subprocess.TimeoutExpired:
@@ -240,6 +247,7 @@ def pipeline(rate_hz: float, flight_s: float, extra_args: tuple[str, ...] = (),
         achieved_hz=(len(kept) - 1) / span_s if span_s > 0 else 0.0,
         source_misses=int(done[2]) if done else None,
         source_misses_after=int(done[2]) - after[0] if done and after else None,
+        cpu_us_per_sample=cpu.per_sample_us(rate_hz),
     )
 
 

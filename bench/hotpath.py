@@ -12,6 +12,9 @@
   recorder; isolated, shared, and shared with one estimator, controller and recorder process for all vehicles,
   ``--process-per-role``): loop p99 and misses over all vehicles, CPU per vehicle.
 
+The chain and pipeline rows also give each process's CPU per sample (``cpu_us_per_sample``, over 80 % of the
+measured time, :class:`bench.cpu.CpuWindow`): what the loop's CPU spends on each sample besides waiting.
+
 A miss: a setpoint not received within one period of its state's stamp, or never (at the probe, a
 process of its own); the dashboard rows also give the source's own count (a setpoint not there by its
 next sample: what the vehicle sees). The figures go to
@@ -30,10 +33,10 @@ import time
 
 import numpy as np
 
-from bench.cpu import cpu_s
+from bench.cpu import CpuWindow, cpu_s
 from bench.echo import CHAIN
 from bench.payloads import payload
-from cli.up import cpu_sets
+from cli.up import LOOP_ROLES, cpu_sets
 from runtime.bus import BusConfig
 from runtime.schema import SetpointMsg
 from tests.busutil import REPO, children_of, free_port, neso, session, stop
@@ -60,6 +63,13 @@ def row(name: str, s: dict, notes: str = "") -> tuple[str, ...]:
     return (name, str(s["samples"]), us(s["p50_us"]), us(s["p99_us"]), us(s["max_us"]), str(s["misses"]), notes)
 
 
+def cpu_note(s: dict) -> str:
+    """``CPU µs/sample: source 410, estimator 420, …`` of a row's ``cpu_us_per_sample`` (loop roles first)."""
+    cpu = s.get("cpu_us_per_sample") or {}
+    order = sorted(cpu, key=lambda name: (name not in LOOP_ROLES, name))
+    return ("CPU µs/sample: " + ", ".join(f"{name} {cpu[name]:.0f}" for name in order)) if cpu else ""
+
+
 def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmup_s: float = 1.0,
                keep_samples: bool = False) -> dict:
     """The bare three-hop chain at ``rate_hz`` for ``seconds`` (after ``warmup_s``): :func:`summary`
@@ -72,7 +82,9 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
             for role in ("estimator", "controller")]
     period_s = 1.0 / rate_hz
     received: dict[float, float] = {}  # state stamp → received
-    lock = threading.Lock()
+    lock, measuring = threading.Lock(), threading.Event()
+    cpu = CpuWindow(lambda: {role: hop.pid for role, hop in zip(("estimator", "controller"), hops)}, 0.8 * seconds,
+                    measuring)
 
     def on_setpoint(sample) -> None:
         now = time.monotonic()
@@ -96,6 +108,7 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
                 now = time.monotonic()
                 if now >= t_measure:
                     sent.append(now)
+                    measuring.set()
                 pub.put(struct.pack("<d", now) + body)
                 next_s += period_s
                 delay = next_s - time.monotonic()
@@ -115,6 +128,7 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
         latency = [received[t] - t for t in sent if t in received]
     lost = len(sent) - len(latency)
     out = summary(latency, sum(x > period_s for x in latency) + lost, len(sent))
+    out["cpu_us_per_sample"] = cpu.per_sample_us(rate_hz)
     return dict(out, latency_s=latency) if keep_samples else out
 
 
@@ -128,6 +142,7 @@ def pipeline(rate_hz: float, seconds: float, extra_args: tuple[str, ...] = (), e
         run = fly(rate_hz, seconds, ("--no-trainer", "--recordings-dir", rec, *extra_args), env=env)
     out = summary(run.latency_s, run.probe_misses, len(run.latency_s) + run.probe_misses
                   - sum(x > 1.0 / rate_hz for x in run.latency_s))
+    out["cpu_us_per_sample"] = run.cpu_us_per_sample
     return dict(out, latency_s=list(run.latency_s)) if keep_samples else out
 
 
@@ -188,11 +203,13 @@ def hotpath_rows(seconds: float, results: dict, fleet_sizes: tuple[int, ...] = (
     bus = results.setdefault("bus", {})
     rows = []
     bus["bare_chain_500hz"] = bare_chain(500.0, seconds)
-    rows.append(row("bare chain 500 Hz (3 hops, pipeline's payload sizes)", bus["bare_chain_500hz"], "the floor"))
+    rows.append(row("bare chain 500 Hz (3 hops, pipeline's payload sizes)", bus["bare_chain_500hz"],
+                    "the floor; " + cpu_note(bus["bare_chain_500hz"])))
     for isolate in ("--no-isolate", "--isolate"):
         key = "pipeline_500hz" + ("" if isolate == "--isolate" else "_no_isolation")
         bus[key] = pipeline(500.0, seconds, (isolate,))
-        rows.append(row(f"pipeline 500 Hz, recorder on, {isolate}", bus[key], "state → setpoint at the probe"))
+        rows.append(row(f"pipeline 500 Hz, recorder on, {isolate}", bus[key],
+                        "state → setpoint at the probe; " + cpu_note(bus[key])))
     pipe, bare = bus["pipeline_500hz"]["p99_us"], bus["bare_chain_500hz"]["p99_us"]
     if pipe and bare:
         bus["pipeline_500hz"]["p99_over_bare_chain"] = round(pipe / bare, 2)
