@@ -195,23 +195,23 @@ def build_specs(args) -> list[ProcessSpec]:
             argv = python_module_argv("cli.main", "run", role.name, "--listen", hub_endpoint(args), *secure_argv(args))
             if args.low_latency:
                 argv += ("--low-latency",)
-            specs.append(ProcessSpec(role.name, argv, cpus=cpus(role.name)))
+            specs.append(ProcessSpec(role.name, argv, cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             continue
         if not role.per_vehicle:  # optional roles (enabled_by) are never the reason a flight stops
             specs.append(ProcessSpec(role.name, service_argv(role.name, vehicles[0], args, 0),
                                      essential=not role.enabled_by, nice=10 if role.enabled_by else 0,
-                                     cpus=cpus(role.name)))
+                                     cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             continue
         if sharing_processes(args) and role.name in SHARED_ROLES:
             specs.append(ProcessSpec(role.name, (*service_argv(role.name, vehicles[0], args, 0), "--vehicles",
                                                  ",".join(vehicles)),
-                                     cpus=cpus(role.name)))
+                                     cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             continue
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
             finishes = role.name == "source" and args.duration > 0
             specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes,
-                                     cpus=cpus(role.name)))
+                                     cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
     return specs
 
 

@@ -28,6 +28,7 @@ class Role:
     watches: tuple[str, ...] = ()  # topics a watcher shows when someone publishes them (of every vehicle)
     identity: str = ""  # certificate common name on a secure bus ("": the role's name)
     offers_to: tuple[str, ...] = ()  # services it offers networks to (their ``offer`` key; runtime/acl.py)
+    stop_grace_s: float | None = None  # SIGTERM → SIGKILL at a stop of `neso up` (None: the launcher's 2 s)
 
     @property
     def cert_name(self) -> str:
@@ -61,7 +62,7 @@ ROLES: tuple[Role, ...] = (
          publishes=_topics("setpoint", "reference"), subscribes=_topics("state", "estimate", "network")),
     Role("recorder", "services.recorder", "every message of the vehicle into one Rerun .rrd per flight",
          publishes=_topics("recording"), subscribes=_topics("state", "truth", "estimate", "setpoint", "reference"),
-         enabled_by="record"),
+         enabled_by="record", stop_grace_s=12.0),  # it finishes the flight's file first (services/recorder.py)
     Role("trainer", "services.trainer", "trains, certifies and stores networks from recordings; offers them to the estimator",
          publishes={}, subscribes=_topics("network"), enabled_by="trainer", offers_to=("estimator",)),
     Role("px4_gateway", "services.px4_gateway",

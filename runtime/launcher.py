@@ -3,10 +3,12 @@
 Children are started in the order given, their output is echoed with the role's name in
 front, and each gets ``PR_SET_PDEATHSIG`` so it dies with the launcher even if the launcher is
 killed with ``kill -9`` (no orphans). A child that exits while the launcher is running is
-restarted after ``restart_delay_s`` (at most ``max_restarts`` times); a child marked
+restarted after ``restart_delay_s`` (at most ``max_restarts`` times), unless it exited with
+:data:`EXIT_CONFIG` (its configuration was refused: restarting cannot help); a child marked
 ``finishes`` (the lockstep source) ends the whole run when it exits cleanly. A child starts with its
 spec's niceness and CPU affinity (both inherited by everything it starts). ``stop()``
-sends SIGTERM to every child, waits up to ``stop_timeout_s``, then SIGKILLs what is left.
+sends SIGTERM to every child, waits up to its spec's ``stop_timeout_s`` (default the supervisor's),
+then SIGKILLs what is left.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import time
 from dataclasses import dataclass
 
 _PR_SET_PDEATHSIG = 1
+EXIT_CONFIG = 2  # a service refused its configuration (argparse's usage error too): never restarted
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -37,6 +40,7 @@ class ProcessSpec:
     essential: bool = True  # False: when it keeps crashing, give up on it alone and let the rest run
     nice: int = 0  # CPU niceness from the start (its imports included): >0 for what must not slow the loop
     cpus: tuple[int, ...] = ()  # CPU affinity from the start (empty: any CPU)
+    stop_timeout_s: float | None = None  # SIGTERM → SIGKILL at a stop (None: the supervisor's)
 
 
 def interrupt(proc: subprocess.Popen, timeout_s: float = 15.0) -> None:
@@ -102,6 +106,15 @@ class Supervisor:
                     self.echo(f"{spec.name} finished")
                     self.finished.set()
                     return
+                if code == EXIT_CONFIG and self.restarts[spec.name] <= self.max_restarts:
+                    self.restarts[spec.name] = self.max_restarts + 1  # given up on: the same start would fail again
+                    self.echo(f"{spec.name} exited with {code}: it refused its configuration (its last lines say why); "
+                              "not restarting it" + ("" if spec.essential else " (not essential: the others go on)"))
+                    if spec.essential:
+                        self.exit_code = EXIT_CONFIG
+                        self.finished.set()
+                        return
+                    continue
                 if self.restarts[spec.name] >= self.max_restarts and not spec.essential:
                     if self.restarts[spec.name] == self.max_restarts:
                         self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: "
@@ -135,12 +148,13 @@ class Supervisor:
         live = [(name, p) for name, p in reversed(list(self.procs.items())) if p.poll() is None]
         for _name, p in live:
             p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + self.stop_timeout_s
+        sent = time.monotonic()
+        grace = {s.name: self.stop_timeout_s if s.stop_timeout_s is None else s.stop_timeout_s for s in self.specs}
         for name, p in live:
             try:
-                p.wait(max(0.0, deadline - time.monotonic()))
+                p.wait(max(0.0, sent + grace[name] - time.monotonic()))
             except subprocess.TimeoutExpired:
-                self.echo(f"{name} (pid {p.pid}) did not stop in {self.stop_timeout_s:.0f} s: killing it")
+                self.echo(f"{name} (pid {p.pid}) did not stop in {grace[name]:g} s: killing it")
                 p.kill()
                 p.wait()
         self.echo("all processes stopped")

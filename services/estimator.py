@@ -31,6 +31,7 @@ def config_from_args(args) -> EstimatorConfig:
 
 
 def run(args, bus) -> int:
+    from runtime.launcher import EXIT_CONFIG
     from runtime.node import Node, run_node
     from runtime.params import ParamSet
 
@@ -40,7 +41,7 @@ def run(args, bus) -> int:
     except (OSError, ValueError) as exc:  # a missing or refused file is the user's to fix: one line, no traceback
         print(f"[estimator] error: network {config.network!r}: {exc} (paths are relative to where neso runs; "
               "--network FILE, or '' for none)", file=sys.stderr, flush=True)
-        return 2
+        return EXIT_CONFIG
     default_gains = (ControlConfig().kp[2], ControlConfig().kd[2])
     network, startup_event = startup_network(config, loaded, default_gains)
     choice = NetworkChoice(network, source if network is not None else "none", config.network_dir)

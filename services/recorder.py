@@ -37,8 +37,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from recordings.layout import RECORDINGS_DIR
+from runtime.graph import role as graph_role
 from runtime.options import add_options, config_from_options, option
 from runtime.schema import Message, RecordingMsg, SchemaError
+
+# at a stop, the writer's time to finish the flight's file: the launcher's grace for this role less 2 s for the rest
+WRITER_FINISH_S = graph_role("recorder").stop_grace_s - 2.0
 
 
 
@@ -331,7 +335,7 @@ class Recorder:
 
     def join_compactions(self, timeout_s: float = 30.0) -> None:
         """Wait for the background compactions, ``timeout_s`` in all (not each: at a shutdown the
-        launcher allows 2 s). One still running is finished by the next recorder start."""
+        launcher's grace is for the flight's file). One still running is finished by the next recorder start."""
         deadline = time.monotonic() + timeout_s
         for thread in self._compactions:
             thread.join(max(0.0, deadline - time.monotonic()))
@@ -457,7 +461,7 @@ class Recorder:
         self._status(force=True)
         if self.config.compact and not self._stop.is_set():
             self._compact(w.path, "flight closed")
-        elif self.config.compact:  # shutting down: the launcher allows 2 s, so compact it at the next start
+        elif self.config.compact:  # shutting down: a prompt exit, the next start compacts it
             self.pending.add(w.path)
 
     def status(self) -> RecordingMsg:
@@ -541,7 +545,7 @@ def run(args, bus) -> int:
         node.wait()
         everything.undeclare()
         recorder.stop()
-        writer_thread.join(10.0)
-        recorder.join_compactions(0.5)  # an unfinished one resumes at the next start; the launcher allows 2 s
+        writer_thread.join(WRITER_FINISH_S)
+        recorder.join_compactions(0.5)  # an unfinished one resumes at the next start
 
     return run_node(node, main)
