@@ -28,7 +28,7 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
     convention), at the network's certified physical bound."""
     from neso.certificate import flight_certificate
     from neso.netfile import NetworkFileError, load_network
-    from flight.estimator import DEFAULT_NETWORK
+    from flight.estimator import DEFAULT_NETWORK, shipped
     from services.trainer import TrainerConfig
 
     gains = TrainerConfig()
@@ -50,7 +50,7 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
                      "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
                      "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
                      "val_loss": float(val) if val else None, "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
-                     "flown_by_default": path.resolve() == Path(DEFAULT_NETWORK).resolve(), "path": str(path)})
+                     "flown_by_default": path.resolve() == Path(shipped(DEFAULT_NETWORK)).resolve(), "path": str(path)})
     return rows
 
 

@@ -74,6 +74,7 @@ from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
 
 DEFAULT_NETWORK = "networks/base.safetensors"
+PROJECT_ROOT = Path(__file__).resolve().parents[1]  # the checkout: where networks/ ships
 SHADOW_WINDOW = 250  # samples: 5 s at 50 Hz
 MAX_NETWORK_FILE_BYTES = 10_000_000
 PRIOR_PATHWAYS = ("neural_eso", "nn")  # pathways that fly the network
@@ -444,10 +445,21 @@ def _describe(net: LipschitzMLP | None, source: str, path: str, net_id: str | No
             "certified_phys": net.certified_lipschitz_physical(), "val_loss": net.metadata.get("val_loss", "")}
 
 
+def shipped(path: str) -> str:
+    """``path`` as given when it exists (relative to where neso runs) or when the project ships no file there;
+    else the shipped file (``networks/base.safetensors`` from any folder): an absolute path."""
+    given = Path(path)
+    if given.is_absolute() or given.exists() or not (PROJECT_ROOT / given).is_file():
+        return path
+    return str(PROJECT_ROOT / given)
+
+
 def load_flown_network(path: str) -> tuple[LipschitzMLP | None, str]:
-    """The network at ``path`` (``""``: none), validated through the file gate."""
+    """The network at ``path`` (``""``: none; :func:`shipped` finds the project's own from any folder),
+    validated through the file gate; and the path it was read from."""
     if not path:
         return None, "none"
+    path = shipped(path)
     return load_network(path, expected_outputs=1), path
 
 

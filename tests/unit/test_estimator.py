@@ -124,3 +124,14 @@ def test_neural_observer_has_no_online_correction():
     assert abs(est_neso.f_hat[2] - f_neso[2]) < 1e-3
     assert abs(est_nobs.f_hat[2] - f[2]) > 0.05
     assert est_nobs.f_hat[2] == pytest.approx(est_nobs.f_n[2])
+
+
+def test_the_shipped_network_is_found_from_any_folder_and_a_users_own_path_is_kept(tmp_path, monkeypatch):
+    from flight.estimator import DEFAULT_NETWORK, PROJECT_ROOT, shipped
+
+    monkeypatch.chdir(tmp_path)
+    assert shipped(DEFAULT_NETWORK) == str(PROJECT_ROOT / DEFAULT_NETWORK)
+    assert shipped("networks/nope.safetensors") == "networks/nope.safetensors"  # the open says it is missing
+    (tmp_path / "networks").mkdir()
+    (tmp_path / DEFAULT_NETWORK).write_bytes(b"mine")
+    assert shipped(DEFAULT_NETWORK) == DEFAULT_NETWORK  # a file where neso runs wins over the shipped one
