@@ -5,7 +5,7 @@ One `neso up`, in order: 30 s untouched (nothing flies: no recording); the contr
 commanding a take-off while the vehicle stays disarmed (what made 104 recordings of 0.1 s: the
 controller's thrust said "flying", the telemetry said "disarmed", ten times a second): still none;
 then a real flight, PX4 armed and in offboard, take-off, hover, land: exactly one recording;
-then SIGINT to `neso up`: every process gone within 3 s, none killed.
+then SIGINT to `neso up`: every process gone within 3 s (the recorder within its grace), none killed.
 """
 from __future__ import annotations
 
@@ -17,8 +17,9 @@ from pathlib import Path
 
 from recordings.reader import read_recording
 from runtime.client import command
+from runtime.graph import role as graph_role
 from runtime.probe import Probe
-from tests.busutil import children_of, free_port, neso, peer, session
+from tests.busutil import children_of, free_port, neso, peer, role_pid, session
 
 TOPICS = ("state", "setpoint", "reference", "telemetry", "recording")
 
@@ -87,18 +88,27 @@ def test_the_mavlink_flow_records_one_flight_per_flight_and_stops_within_3_s_of_
             assert len(files) == 1, [f.name for f in files]
     finally:
         kids = children_of(proc.pid)
+        try:
+            recorder = role_pid(proc.pid, "recorder")
+        except AssertionError:  # none: the run failed before it started (the error above says why)
+            recorder = None
         sent = time.monotonic()
         proc.send_signal(signal.SIGINT)  # Ctrl-C
-        while (proc.poll() is None or any(_alive(k) for k in kids)) and time.monotonic() - sent < 15:
+        gone_s: dict[int, float] = {}
+        while (proc.poll() is None or len(gone_s) < len(kids)) and time.monotonic() - sent < 15:
+            gone_s.update({k: time.monotonic() - sent for k in kids if k not in gone_s and not _alive(k)})
             time.sleep(0.02)
         stopped_s = time.monotonic() - sent
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(10)
     log = "".join(output)
-    print(f"stopped {stopped_s:.2f} s after SIGINT")
+    print(f"stopped {stopped_s:.2f} s after SIGINT; the recorder {gone_s.get(recorder, float('nan')):.2f} s")
     print("".join(line for line in output if "recorder |" in line and "health" not in line)[-3000:])
-    assert stopped_s < 3.0, f"{stopped_s:.2f} s to stop"
+    others = {k: t for k, t in gone_s.items() if k != recorder}
+    assert len(others) == len(kids) - 1 and max(others.values()) < 3.0, f"{others} s to stop (pid: s)"
+    # the recorder may take its grace to finish the flight's file (niced, it is slow beside a CPU hog)
+    assert recorder in gone_s and stopped_s < graph_role("recorder").stop_grace_s, f"{stopped_s:.2f} s to stop"
     assert "did not stop" not in log and "killing it" not in log, log[-2000:]
     rec = read_recording(files[0])
     start, summary = rec.properties["start"], rec.properties["summary"]
