@@ -45,7 +45,6 @@ from runtime.schema import Message, RecordingMsg, SchemaError
 WRITER_FINISH_S = graph_role("recorder").stop_grace_s - 2.0
 
 
-
 @dataclass(frozen=True)
 class RecorderConfig:
     directory: str = option(RECORDINGS_DIR, flag="--recordings-dir", help="where flights are written")

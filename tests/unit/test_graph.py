@@ -66,6 +66,9 @@ def test_docker_compose_has_one_container_per_role_with_explicit_endpoints():
         assert any(v.endswith(":/data/recordings") for v in svc["volumes"])
         # every option in the command is one the service's real CLI accepts
         build_parser().parse_args(cmd)
+        # docker's SIGTERM → SIGKILL grace (10 s unless set) is at least the role's (the recorder's file)
+        grace = float(svc.get("stop_grace_period", "10s").rstrip("s"))
+        assert GRAPH[name].stop_grace_s is None or grace >= GRAPH[name].stop_grace_s, name
 
 
 def test_every_role_module_has_the_service_entry_points():
