@@ -100,13 +100,13 @@ class Supervisor:
                 return
             for spec in self.specs:
                 code = self.procs[spec.name].poll()
-                if code is None:
+                if code is None or self.restarts[spec.name] > self.max_restarts:  # running, or given up on
                     continue
                 if spec.finishes and code == 0:
                     self.echo(f"{spec.name} finished")
                     self.finished.set()
                     return
-                if code == EXIT_CONFIG and self.restarts[spec.name] <= self.max_restarts:
+                if code == EXIT_CONFIG:
                     self.restarts[spec.name] = self.max_restarts + 1  # given up on: the same start would fail again
                     self.echo(f"{spec.name} exited with {code}: it refused its configuration (its last lines say why); "
                               "not restarting it" + ("" if spec.essential else " (not essential: the others go on)"))
@@ -116,13 +116,13 @@ class Supervisor:
                         return
                     continue
                 if self.restarts[spec.name] >= self.max_restarts and not spec.essential:
-                    if self.restarts[spec.name] == self.max_restarts:
-                        self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: "
-                                  "giving up on it (not essential: the others go on)")
-                        self.restarts[spec.name] += 1
+                    self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: "
+                              "giving up on it (not essential: the others go on)")
+                    self.restarts[spec.name] += 1
                     continue
                 if self.restarts[spec.name] >= self.max_restarts:
                     self.echo(f"{spec.name} exited with {code}; restarted {self.max_restarts} times already: giving up")
+                    self.restarts[spec.name] += 1
                     self.exit_code = 1
                     self.finished.set()
                     return

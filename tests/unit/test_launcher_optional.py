@@ -9,6 +9,16 @@ import time
 from runtime.launcher import ProcessSpec, Supervisor
 
 
+def _poll_until(sup: Supervisor, done, timeout_s: float = 10.0) -> None:
+    """Poll ``sup`` until ``done()`` (at most ``timeout_s``), then 20 times more: nothing further may happen."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not done():
+        sup.poll()
+        time.sleep(0.02)
+    for _ in range(20):
+        sup.poll()
+
+
 def test_a_crashing_optional_process_is_given_up_on_alone_and_nice_applies_from_the_start():
     lines: list[str] = []
     sup = Supervisor([ProcessSpec("loop", (sys.executable, "-c", "import time; time.sleep(30)")),
@@ -18,12 +28,7 @@ def test_a_crashing_optional_process_is_given_up_on_alone_and_nice_applies_from_
     sup.start()
     try:
         assert os.getpriority(os.PRIO_PROCESS, sup.procs["niced"].pid) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 7)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and not any("giving up on it" in line for line in lines):
-            sup.poll()
-            time.sleep(0.02)
-        for _ in range(20):
-            sup.poll()
+        _poll_until(sup, lambda: any("giving up on it" in line for line in lines))
         assert any("giving up on it (not essential" in line for line in lines), lines
         assert not sup.finished.is_set() and sup.exit_code == 0
         assert sup.procs["loop"].poll() is None  # the essential one runs on
@@ -39,12 +44,7 @@ def test_a_process_that_refuses_its_configuration_is_not_restarted():
                      restart_delay_s=0.01, max_restarts=5, stop_timeout_s=2.0, echo=lines.append)
     sup.start()
     try:
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and not any("not restarting" in line for line in lines):
-            sup.poll()
-            time.sleep(0.02)
-        for _ in range(20):
-            sup.poll()
+        _poll_until(sup, lambda: any("not restarting" in line for line in lines))
         assert sup.restarts["page"] > sup.max_restarts and not any("restarting (restart" in line for line in lines), lines
         assert any("page exited with 2: it refused its configuration" in line and "the others go on" in line
                    for line in lines), lines
@@ -57,10 +57,8 @@ def test_a_process_that_refuses_its_configuration_is_not_restarted():
                            echo=lines.append)
     essential.start()
     try:
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and not essential.finished.is_set():
-            essential.poll()
-            time.sleep(0.02)
+        # its output is echoed by a thread of its own: wait for that line too
+        _poll_until(essential, lambda: essential.finished.is_set() and any("network missing" in line for line in lines))
     finally:
         essential.stop()
     assert essential.finished.is_set() and essential.exit_code == 2, lines  # the run ends at once, with its code
