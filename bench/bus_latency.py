@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import msgpack
 import numpy as np
 
-from bench.cpu import CpuWindow, roles_of
+from bench.cpu import CpuWindow
 from runtime.bus import BusConfig
 from runtime.schema import HealthMsg, Keys, SetpointMsg, StateMsg
-from tests.busutil import REPO, free_port, neso, session, stop
+from tests.busutil import REPO, free_port, neso, roles_of, session, stop
 
 RATES_HZ = (500.0, 50.0)
 DISCARD_S = 2.0  # flight seconds discarded at the start (services linking up, observer warm-up)

@@ -23,8 +23,8 @@ def cpu_s(pids: Iterable[int]) -> float:
 class CpuWindow:
     """Each named process's CPU over one window of a run, measured on a thread of its own: once
     ``start`` is set (given up after ``start_timeout_s``) it asks ``processes()`` for ``{name: pid}``
-    and reads their CPU then and ``seconds`` later. :meth:`per_sample_us` (after :meth:`join`): µs of
-    CPU per sample of a ``rate_hz`` loop."""
+    and reads their CPU then and ``seconds`` later. :meth:`per_sample_us`: µs of CPU per sample of a
+    ``rate_hz`` loop."""
 
     def __init__(self, processes: Callable[[], dict[str, int]], seconds: float, start: threading.Event,
                  start_timeout_s: float = 60.0) -> None:
@@ -47,19 +47,3 @@ class CpuWindow:
         did not finish)."""
         self._thread.join(timeout_s)
         return {name: round(fraction / rate_hz * 1e6, 1) for name, fraction in self._cpu_fraction.items()}
-
-
-def roles_of(launcher_pid: int) -> dict[str, int]:
-    """``{role: pid}`` of the ``neso run <role>`` children of a ``neso up`` launcher."""
-    from tests.busutil import children_of
-
-    out = {}
-    for pid in children_of(launcher_pid):
-        try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                argv = f.read().decode(errors="replace").split("\0")
-        except OSError:
-            continue
-        if "run" in argv and argv.index("run") + 1 < len(argv):
-            out[argv[argv.index("run") + 1]] = pid
-    return out

@@ -147,14 +147,24 @@ def children_of(pid: int) -> list[int]:
     return kids
 
 
-def role_pid(launcher_pid: int, role: str) -> int:
-    """The pid of the ``neso run <role>`` child of a ``neso up`` launcher."""
+def roles_of(launcher_pid: int) -> dict[str, int]:
+    """``{role: pid}`` of the ``neso run <role>`` children of a ``neso up`` launcher (with several vehicles, a
+    role's first child)."""
+    out: dict[str, int] = {}
     for pid in children_of(launcher_pid):
         try:
             with open(f"/proc/{pid}/cmdline", "rb") as f:
                 argv = f.read().split(b"\0")
         except FileNotFoundError:
             continue
-        if b"run" in argv and argv.index(b"run") + 1 < len(argv) and argv[argv.index(b"run") + 1] == role.encode():
-            return pid
-    raise AssertionError(f"no {role} process under the launcher")
+        if b"run" in argv and argv.index(b"run") + 1 < len(argv):
+            out.setdefault(argv[argv.index(b"run") + 1].decode(errors="replace"), pid)
+    return out
+
+
+def role_pid(launcher_pid: int, role: str) -> int:
+    """The pid of the ``neso run <role>`` child of a ``neso up`` launcher."""
+    pid = roles_of(launcher_pid).get(role)
+    if pid is None:
+        raise AssertionError(f"no {role} process under the launcher")
+    return pid
