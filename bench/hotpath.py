@@ -43,8 +43,9 @@ from tests.busutil import REPO, children_of, free_port, neso, session, stop
 
 COLUMNS = ("hot path", "samples", "p50 µs", "p99 µs", "max µs", "misses", "notes")
 # fleets: how `neso up` runs them → their key in out/bench.json
+# (a process per vehicle and role in the first two, explicitly: `neso up` shares processes from 3 vehicles on)
 FLEET_VARIANTS: tuple[tuple[tuple[str, ...], str], ...] = (
-    (("--isolate",), "fleet"), (("--no-isolate",), "fleet_no_isolation"),
+    (("--isolate", "--no-process-per-role"), "fleet"), (("--no-isolate", "--no-process-per-role"), "fleet_no_isolation"),
     (("--no-isolate", "--process-per-role"), "fleet_process_per_role"))
 
 
