@@ -21,6 +21,13 @@ def loop():
     thread = threading.Thread(target=lp.run_forever, daemon=True)
     thread.start()
     yield lp
+
+    async def drain() -> None:  # a waiter the test gave up on ends here, not as a pending task at exit
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+    asyncio.run_coroutine_threadsafe(drain(), lp).result(2.0)
     lp.call_soon_threadsafe(lp.stop)
     thread.join(2.0)
     lp.close()
