@@ -30,7 +30,7 @@ from bench.cpu import cpu_s
 from runtime.bus import BusConfig
 from runtime.schema import EventMsg, HealthMsg, Keys, SetpointMsg
 from tests.browser.chromium import KeptReniced, launch, open_dashboard
-from tests.busutil import children_of, free_port, neso, session, stop
+from tests.busutil import free_port, neso, role_pid, session, stop
 
 RATE_HZ = 50.0
 WARMUP_S = 3.0
@@ -82,9 +82,10 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
                     try:
                         pages = [open_dashboard(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
                         with KeptReniced(cpus=browser_cpus):
-                            cpu0 = cpu_s([_dashboard_pid(proc.pid)])
+                            dashboard_pid = role_pid(proc.pid, "dashboard")
+                            cpu0 = cpu_s([dashboard_pid])
                             _measure(flight_s, measuring)
-                            out["dashboard_cpu"] = (cpu_s([_dashboard_pid(proc.pid)]) - cpu0) / (WARMUP_S + flight_s)
+                            out["dashboard_cpu"] = (cpu_s([dashboard_pid]) - cpu0) / (WARMUP_S + flight_s)
                             out["dom_s"] = _bus_to_dom(probe, keys, pages[0])
                     finally:
                         browser.close()
@@ -113,14 +114,6 @@ def _pump(proc, lines: list[str]) -> None:
             lines.append(line)
     except ValueError:  # the pipe was closed by stop()
         pass
-
-
-def _dashboard_pid(up_pid: int) -> int:
-    for pid in children_of(up_pid):
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            if b"dashboard" in f.read().split(b"\0"):
-                return pid
-    raise RuntimeError("no dashboard process under neso up")
 
 
 def _measure(flight_s: float, measuring: threading.Event) -> None:

@@ -78,14 +78,13 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
     hub = f"tcp/127.0.0.1:{free_port()}"
     env = dict(os.environ, **(env or {}))
     hub_proc = neso("run", "hub", "--listen", hub, env=env)
-    hops = [subprocess.Popen([sys.executable, "-m", "bench.echo", "chain", role, hub], cwd=REPO, env=env,
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-            for role in ("estimator", "controller")]
+    hops = {role: subprocess.Popen([sys.executable, "-m", "bench.echo", "chain", role, hub], cwd=REPO, env=env,
+                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            for role in ("estimator", "controller")}
     period_s = 1.0 / rate_hz
     received: dict[float, float] = {}  # state stamp → received
     lock, measuring = threading.Lock(), threading.Event()
-    cpu = CpuWindow(lambda: {role: hop.pid for role, hop in zip(("estimator", "controller"), hops)}, 0.8 * seconds,
-                    measuring)
+    cpu = CpuWindow(lambda: {role: hop.pid for role, hop in hops.items()}, 0.8 * seconds, measuring)
 
     def on_setpoint(sample) -> None:
         now = time.monotonic()
@@ -94,7 +93,7 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
             received.setdefault(stamp, now)
 
     try:
-        for hop in hops:
+        for hop in hops.values():
             if hop.stdout.readline().strip() != "ready":
                 raise RuntimeError("a chain hop did not start")
         with session(BusConfig(connect=(hub,))) as s:
@@ -117,9 +116,9 @@ def bare_chain(rate_hz: float, seconds: float, *, env: dict | None = None, warmu
                     time.sleep(delay)
             time.sleep(0.2)  # the last answers
     finally:
-        for hop in hops:
+        for hop in hops.values():
             hop.stdin.close()
-        for hop in hops:
+        for hop in hops.values():
             try:
                 hop.wait(5.0)
             except subprocess.TimeoutExpired:

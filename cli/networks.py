@@ -32,6 +32,7 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
     from services.trainer import TrainerConfig
 
     gains = TrainerConfig()
+    flown_by_default = Path(shipped(DEFAULT_NETWORK)).resolve()
     rows = []
     for path in sorted(Path(folder).rglob("*.safetensors")):
         if path.resolve().is_relative_to(registry.resolve()):
@@ -50,7 +51,7 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
                      "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
                      "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
                      "val_loss": float(val) if val else None, "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
-                     "flown_by_default": path.resolve() == Path(shipped(DEFAULT_NETWORK)).resolve(), "path": str(path)})
+                     "flown_by_default": path.resolve() == flown_by_default, "path": str(path)})
     return rows
 
 
