@@ -192,6 +192,23 @@ class LipschitzMLP:
         x += fb[last]
         return x
 
+    def input_gradients(self, z: np.ndarray) -> np.ndarray:
+        """Physical slopes ``∂h_j/∂z_i`` at each input (``z`` (N, n_in) → (N, n_out, n_in); output unit per
+        input unit), exact for the ReLU network (the right derivative at a kink)."""
+        fw, fb = self._fw, self._fb
+        x = np.asarray(z, dtype=np.float64)
+        if x.ndim != 2:
+            raise ValueError(f"z must have shape (N, n_in), got {x.shape}")
+        masks = []
+        for i in range(len(fw) - 1):
+            x = x @ fw[i].T + fb[i]
+            masks.append(x > 0.0)
+            x = np.maximum(x, 0.0)
+        grad = np.broadcast_to(fw[-1], (len(masks[0]) if masks else len(z), *fw[-1].shape)).copy()
+        for i in range(len(fw) - 2, -1, -1):
+            grad = (grad * masks[i][:, None, :]) @ fw[i]
+        return grad
+
     def predict_normalised(self, zn: np.ndarray) -> np.ndarray:
         """``h_n`` on z-scored inputs, z-scored output. Shapes as ``predict``."""
         x = np.asarray(zn, dtype=np.float64)

@@ -401,9 +401,15 @@ def test_a_warm_start_under_refitted_scalers_starts_from_the_same_function():
                                metadata={"feature_set": "paper@1"}).network
     shifted = z * 1.5 + 0.3
     start = train_lipschitz_mlp(shifted, _gentle(z), lipschitz_bound=2.0, bound_units="physical", epochs=0, seed=0,
-                                init=base, scalers="fit").network
-    np.testing.assert_allclose(start.predict(z), base.predict(z), rtol=1e-6, atol=1e-6)  # float32 round trip
+                                init=base, scalers="fit", start="init").network
+    np.testing.assert_allclose(start.predict(z), base.predict(z), rtol=1e-9, atol=1e-9)
     assert not np.allclose(start.input_mean, base.input_mean)
+    assert start.metadata["start"] == "init"
+    # by default the start is whichever validates better: here the warm start no longer fits (inputs moved)
+    best = train_lipschitz_mlp(shifted, _gentle(z), lipschitz_bound=2.0, bound_units="physical", epochs=0, seed=0,
+                               init=base, scalers="fit")
+    assert best.network.metadata["start"] == "linear"
+    assert best.val_loss_vs_mean < 1.0
 
 
 def test_every_feature_set_round_trips_through_the_network_file(tmp_path):
