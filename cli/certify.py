@@ -76,7 +76,9 @@ def _network(args) -> tuple[float, dict]:
     """(L_N physical, what the JSON says of the network); ValueError naming why a file is refused."""
     from neso.netfile import NetworkFileError, load_network
 
-    path = _flight_defaults()[3] if args.network == "default" else args.network
+    from flight.estimator import shipped
+
+    path = shipped(_flight_defaults()[3] if args.network == "default" else args.network)
     try:
         net = load_network(path)
     except FileNotFoundError:

@@ -3,6 +3,7 @@ the trained ones in the registry — with their bound, validation loss and small
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 
@@ -50,9 +51,19 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
                      "label": meta.get("training_data", "").split(":")[0], "parent": "" if meta.get("warm_start", "no") == "no" else meta["warm_start"],
                      "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
                      "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
-                     "val_loss": float(val) if val else None, "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
+                     "val_loss": float(val) if val else None, **_learned(net), "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
                      "flown_by_default": path.resolve() == flown_by_default, "path": str(path)})
     return rows
+
+
+def _learned(net) -> dict:
+    learned = net.learned
+    vs = learned["val_loss_vs_mean"]
+    return {"val_loss_vs_mean": vs if math.isfinite(vs) else None, "slopes": learned["slopes"]}
+
+
+def _slopes_text(slopes: dict) -> str:
+    return " ".join(f"{k.split('_')[0]}{v:+.2f}" for k, v in slopes.items()) or "—"
 
 
 def run(args) -> int:
@@ -66,8 +77,8 @@ def run(args) -> int:
     if not rows:
         print(f"no networks in {args.shipped} or {args.registry}")
         return 0
-    print(f"{'where':8} {'id':44} {'label':12} {'L_N norm':>8} {'certified':>9} {'val loss':>9} {'small-gain':>10}  "
-          "parent / trained on")
+    print(f"{'where':8} {'id':44} {'label':12} {'L_N norm':>8} {'certified':>9} {'val loss':>9} {'vs mean':>7} "
+          f"{'small-gain':>10}  {'slopes ∂f_N/∂input':34} parent / trained on")
     for r in rows:
         if "error" in r:
             print(f"{r['where']:8} {r['id']:44} UNREADABLE: {r['error']}")
@@ -76,11 +87,13 @@ def run(args) -> int:
         source = r.get("training_data") or ", ".join(p.rsplit("/", 1)[-1] for p in r.get("recordings", []))
         mark = " *" if r.get("flown_by_default") else ""
         print(f"{r['where']:8} {r['id'] + mark:44} {r['label'][:12]:12} {_num(r['lipschitz_norm'], '8.3g')} "
-              f"{_num(r.get('certified_phys'), '9.4g')} {_num(r['val_loss'], '9.4g')} {cert:>10}  "
+              f"{_num(r.get('certified_phys'), '9.4g')} {_num(r['val_loss'], '9.4g')} "
+              f"{_num(r.get('val_loss_vs_mean'), '7.3f')} {cert:>10}  {_slopes_text(r.get('slopes') or {}):34} "
               f"{r['parent'] or '—'} / {source or '—'}")
     if not any(r["where"] == "registry" for r in rows):
         print(f"(registry {args.registry}: empty — `neso train` stores there)")
     if any(r.get("flown_by_default") for r in rows):
         print("* flown by the estimator by default (--network); certified: the physical L_N ((m/s²)/unit z) the network provably meets; small-gain: the tight certificate at the trainer's "
-              "z gains for the network's certified physical L_N")
+              "z gains for the network's certified physical L_N; vs mean: validation loss over that of predicting "
+              "the mean (< 1: it learned something); slopes: mean physical ∂f_N/∂input over its training inputs")
     return 0

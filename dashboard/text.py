@@ -11,6 +11,20 @@ LEVEL_RGB = {"ok": "#2b8a3e", "info": "#1864ab", "warn": "#e8590c", "bad": "#c92
 EVENTS_SHOWN = 6
 
 
+def shadow_text(rms_mps2: float) -> str:
+    """The candidate's shadow error; none before its first shadow sample (the estimator reports −1)."""
+    return f"{rms_mps2:.3f} m/s² RMS" if rms_mps2 >= 0 else "none yet"
+
+
+def learned_text(network: dict) -> str:
+    """What a network learned, as the trainer recorded it: validation loss against predicting the mean,
+    and the mean physical slope per input."""
+    vs = network.get("val_loss_vs_mean")
+    slopes = network.get("slopes") or {}
+    vs_part = f"val loss {vs:.3f} × the mean's" if isinstance(vs, (int, float)) else "val loss vs mean not recorded"
+    return vs_part + (" · slopes " + ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items()) if slopes else "")
+
+
 def predicted_text(candidate: dict) -> str:
     """The trainer's closed-loop prediction for a candidate, as the network panel shows it."""
     p = candidate.get("predicted") or {}
@@ -132,8 +146,9 @@ def network_markdown(v: VehicleModel) -> str:
     return (f"**Active** `{net.active.get('id', '?')}` from {net.active.get('source', '?')} · inputs "
             f"{net.active.get('feature_set', '–')} · L_N {fmt(lp, '.4g')} phys / {fmt(ln, '.4g')} normalised  \n"
             + (f"**Candidate** `{cand.get('id')}` ({cand.get('state', '')}) · shadow error "
-               f"{net.shadow_error_rms_mps2:.3f} m/s² RMS · {predicted_text(cand)} · "
-               f"certificate {'holds' if cand.get('certificate', {}).get('holds') else 'FAILS'}"
+               f"{shadow_text(net.shadow_error_rms_mps2)} · {predicted_text(cand)} · "
+               f"certificate {'holds' if cand.get('certificate', {}).get('holds') else 'FAILS'}  \n"
+               f"learned: {learned_text(cand)}"
                if cand else "no candidate")
             + (f"  \nprevious `{net.previous.get('id')}`" if net.previous else "")
             + f"  \ncanary: {net.canary.get('last') or 'idle'}")

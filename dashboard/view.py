@@ -22,7 +22,7 @@ from dashboard.provenance import provenance_line
 from dashboard.scene import Scene
 from dashboard.text import (events_markdown, figures_markdown, health_markdown, network_markdown, status_html,
                             vehicle_markdown)
-from flight.controller import CONTROLLER_PARAMS
+from flight.controller import CONTROLLER_GAINS
 from neso.types import OMEGA_O_RPS, PATHWAYS
 
 RISKY_PATHWAYS = ("nn", "none")  # no online correction: confirm while airborne
@@ -140,7 +140,7 @@ class DashboardView:
             gui.add_button("Restart world with scenario").on_click(lambda _: self._scenario())
         with gui.add_folder("Advanced: gains", expand_by_default=False):
             self.gain_in = {p.name: gui.add_number(p.name, p.default, min=p.lo, max=p.hi, step=0.1)
-                            for p in CONTROLLER_PARAMS}
+                            for p in CONTROLLER_GAINS}
             self.omega_in = gui.add_number("ω_o rad/s (start-up, read-only)", OMEGA_O_RPS, disabled=True)
             self.gain_override = gui.add_checkbox("Override certificate (gains)", False)
             gui.add_button("Apply gains").on_click(lambda _: self._apply_gains())

@@ -34,7 +34,7 @@ from neso.certificate import flight_certificate, max_certified_lipschitz_best
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
-from neso.types import OMEGA_O_RPS, AttitudeSetpoint, StateMeasurement
+from neso.types import OMEGA_O_RPS, AttitudeSetpoint, StateMeasurement, VehicleModel
 from runtime.options import option
 from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
@@ -65,19 +65,32 @@ class ControllerConfig:
     stale_timeout_s: float = 0.06  # stale_periods at the rate, as config_from_args derives it
     stale_samples: int = 3
     warmup_ticks: int = 25
+    mass_kg: float = option(VehicleModel().mass_kg, unit="kg", help="the vehicle's mass: thrust in newtons is for it "
+                            "(also a live parameter; recorded with every flight, so its labels are in m/s²)")
 
 
 def gain_values(control: ControlConfig) -> dict[str, float]:
-    """``control``'s gains as the controller's live parameters (x and y share theirs)."""
-    return {"kp_xy": control.kp[0], "kd_xy": control.kd[0], "kp_z": control.kp[2], "kd_z": control.kd[2]}
+    """``control``'s gains and the vehicle's mass as the controller's live parameters (x and y share their
+    gains)."""
+    return {"kp_xy": control.kp[0], "kd_xy": control.kd[0], "kp_z": control.kp[2], "kd_z": control.kd[2],
+            "mass_kg": control.vehicle.mass_kg}
+
+
+def with_mass(config: ControllerConfig) -> ControllerConfig:
+    """``config`` with its control law's vehicle model at ``config.mass_kg``."""
+    control = config.control
+    return replace(config, control=replace(control, vehicle=replace(control.vehicle, mass_kg=config.mass_kg)))
 
 
 _GAINS = gain_values(ControlConfig())
-CONTROLLER_PARAMS = (
+CONTROLLER_GAINS = (
     Param("kp_xy", _GAINS["kp_xy"], float, "horizontal position gain", "1/s²", lo=0.1, hi=50.0),
     Param("kd_xy", _GAINS["kd_xy"], float, "horizontal velocity gain", "1/s", lo=0.1, hi=30.0),
     Param("kp_z", _GAINS["kp_z"], float, "altitude position gain", "1/s²", lo=0.1, hi=50.0),
     Param("kd_z", _GAINS["kd_z"], float, "altitude velocity gain", "1/s", lo=0.1, hi=30.0),
+)
+CONTROLLER_PARAMS = CONTROLLER_GAINS + (
+    Param("mass_kg", _GAINS["mass_kg"], float, "vehicle mass (thrust in newtons is for it)", "kg", lo=0.05, hi=100.0),
 )
 
 
@@ -95,6 +108,7 @@ class ControllerCore:
     each returns the (setpoint, reference) pairs to publish (zero or one) plus events."""
 
     def __init__(self, config: ControllerConfig, *, clock: Callable[[], float]) -> None:
+        config = with_mass(config)
         self.config = config
         self.clock = clock
         self.position = PositionController(config.control)
@@ -166,9 +180,11 @@ class ControllerCore:
 
     def apply_gains(self, values: dict) -> None:
         control = replace(self.config.control, kp=(values["kp_xy"], values["kp_xy"], values["kp_z"]),
-                          kd=(values["kd_xy"], values["kd_xy"], values["kd_z"]))
+                          kd=(values["kd_xy"], values["kd_xy"], values["kd_z"]),
+                          vehicle=replace(self.config.control.vehicle,
+                                          mass_kg=values.get("mass_kg", self.config.mass_kg)))
         force = self.position.force_prev_enu_n.copy()
-        self.config = replace(self.config, control=control)
+        self.config = replace(self.config, control=control, mass_kg=control.vehicle.mass_kg)
         self.position = PositionController(control)
         self.position.reset(force)  # keep the rate limiter's memory: no step at the change
 

@@ -304,7 +304,8 @@ class EstimatorCore:
         self.canary.arm()
         self.canary_last = f"armed at the promotion of {info['id']}"
         forced = " by force" if force and (not cert.holds or (isinstance(change, (int, float)) and change >= 0)) else ""
-        return True, (f"promoted {info['id']}{forced} (shadow error {shadow:.4g} m/s²; {cert.text()}); previous "
+        shadow_text = f"{shadow:.4g} m/s²" if shadow >= 0 else "none (no shadow samples yet)"
+        return True, (f"promoted {info['id']}{forced} (shadow error {shadow_text}; {cert.text()}); previous "
                       f"{self.previous[1]['id']}; the canary watches the next {self.config.canary.window_samples} "
                       "comparable samples")
 
@@ -442,7 +443,16 @@ def _describe(net: LipschitzMLP | None, source: str, path: str, net_id: str | No
             "vehicle": net.metadata.get("vehicle", ""), "parent": net.metadata.get("parent", ""),
             "feature_set": net.feature_set.key, "bound_units": net.bound_units,
             "lipschitz_norm": net.certified_lipschitz_normalised(), "lipschitz_phys": net.certified_lipschitz_physical(),
-            "certified_phys": net.certified_lipschitz_physical(), "val_loss": net.metadata.get("val_loss", "")}
+            "certified_phys": net.certified_lipschitz_physical(), "val_loss": net.metadata.get("val_loss", ""),
+            **_learned(net)}
+
+
+def _learned(net: LipschitzMLP) -> dict:
+    """What training recorded it learned, JSON-safe: validation loss over the mean's, mean physical slopes."""
+    learned = net.learned
+    vs = learned["val_loss_vs_mean"]
+    return {"val_loss_vs_mean": vs if math.isfinite(vs) else None,
+            "slopes": {k: v for k, v in learned["slopes"].items() if math.isfinite(v)}}
 
 
 def shipped(path: str) -> str:

@@ -29,7 +29,7 @@ import numpy as np
 
 from neso.features import (DEFAULT_FEATURE_SET, PAPER_FEATURE_SET, FeatureSet, FeatureSignals, ThrustLag,
                            applied_thrust_series)
-from neso.types import VehicleModel
+from neso.types import GRAVITY_MPS2, VehicleModel
 
 LABELS = ("eso", "tdr", "applied")
 #: The pathway a flight must have flown for a label taken from its estimates.
@@ -47,7 +47,8 @@ class FlightSeries:
     ``t_s`` (N,) s; ``pos_enu_m``, ``vel_enu_mps`` (N, 3) measured; ``roll_rad``, ``pitch_rad`` (N,)
     measured; ``thrust_prev_n`` (N,): the thrust commanded at the sample before (the control that
     acted over the period ending at this sample, N); ``f_hat_mps2`` (N, 3): the estimator's f̂
-    (NaN where there was none); ``pathway`` (N,) of str or None.
+    (NaN where there was none); ``pathway`` (N,) of str or None; ``mass_kg``: the vehicle's mass the
+    thrust in newtons is for (a recording's, or the controller's nominal model), kg.
     """
 
     t_s: np.ndarray
@@ -58,6 +59,7 @@ class FlightSeries:
     thrust_prev_n: np.ndarray
     f_hat_mps2: np.ndarray
     pathway: np.ndarray | None = None
+    mass_kg: float = VehicleModel().mass_kg
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -102,28 +104,25 @@ def smoothed_acceleration(pos_m: np.ndarray, dt_s: float, cutoff_hz: float = SMO
     return np.gradient(np.gradient(zero_phase(pos_m, dt_s, cutoff_hz), dt_s), dt_s)
 
 
-def applied_label(series: FlightSeries, lag: ThrustLag, vehicle: VehicleModel = VehicleModel(),
-                  cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
+def applied_label(series: FlightSeries, lag: ThrustLag, cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
     """The lag-consistent label (module docstring), z axis, m/s² (N,): the whole residual through the same
-    zero-phase low-pass (acceleration and thrust alike, so neither leads the other)."""
+    zero-phase low-pass (acceleration and thrust alike, so neither leads the other), with the series' own mass."""
     dt = series.dt_s
     acc = smoothed_acceleration(series.pos_enu_m[:, 2], dt, cutoff_hz)
     lift = zero_phase(applied_thrust_series(series.thrust_prev_n, lag, dt) * series.tilt_cos, dt, cutoff_hz)
-    return acc + vehicle.gravity_mps2 - lift / vehicle.mass_kg
+    return acc + GRAVITY_MPS2 - lift / series.mass_kg
 
 
-def labels(series: FlightSeries, kind: str, lag: ThrustLag = ThrustLag(),
-           vehicle: VehicleModel = VehicleModel()) -> np.ndarray:
+def labels(series: FlightSeries, kind: str, lag: ThrustLag = ThrustLag()) -> np.ndarray:
     """The label ``kind`` (one of :data:`LABELS`) for every sample, z axis, m/s² (N,)."""
     if kind in ("eso", "tdr"):
         return np.asarray(series.f_hat_mps2, dtype=float)[:, 2].copy()
     if kind == "applied":
-        return applied_label(series, lag, vehicle)
+        return applied_label(series, lag)
     raise ValueError(f"label must be one of {LABELS}, got {kind!r}")
 
 
-def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, vehicle: VehicleModel = VehicleModel(), *,
-                        time_constants_s: np.ndarray | None = None,
+def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, *, time_constants_s: np.ndarray | None = None,
                         delays_s: np.ndarray | None = None) -> tuple[ThrustLag, float]:
     """The first-order lag and delay from thrust command to measured acceleration, by grid search.
 
@@ -134,7 +133,8 @@ def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, vehicle: Vehi
     steps. The lag shows above its corner (3.5 Hz for 45 ms), where the position's second difference
     is noise: the acceleration here comes from the source's velocity through a 5 Hz zero-phase
     low-pass (thrust likewise); below ~3 Hz the fit drifts to the longest lag on the grid, which
-    mimics the smoothing and the closed loop's own thrust–disturbance correlation (measured).
+    mimics the smoothing and the closed loop's own thrust–disturbance correlation (measured). Each
+    flight's thrust is taken for its own ``mass_kg``.
     """
     flights = [series] if isinstance(series, FlightSeries) else list(series)
     taus = np.arange(0.0, 0.1501, 0.0025) if time_constants_s is None else np.asarray(time_constants_s)
@@ -148,7 +148,7 @@ def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, vehicle: Vehi
             for s, acc in zip(flights, accs):
                 lift = zero_phase(applied_thrust_series(s.thrust_prev_n, lag, s.dt_s) * s.tilt_cos, s.dt_s,
                                   IDENTIFICATION_CUTOFF_HZ)
-                y = acc - lift / vehicle.mass_kg
+                y = acc - lift / s.mass_kg
                 var += float(np.sum((y - y.mean()) ** 2))
             var /= sum(len(s) for s in flights)
             if var < best[1]:

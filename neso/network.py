@@ -23,6 +23,7 @@ No torch here: this module runs in the control loop.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -162,6 +163,20 @@ class LipschitzMLP:
         """The applied-thrust model its ``thrust_applied_n`` input was built with (metadata
         ``thrust_lag_s``, ``thrust_delay_s``; none: no lag)."""
         return ThrustLag(float(self.metadata.get("thrust_lag_s", 0.0)), float(self.metadata.get("thrust_delay_s", 0.0)))
+
+    @property
+    def learned(self) -> dict:
+        """What training recorded about what it learned: ``val_loss_vs_mean`` (validation MSE over that of
+        predicting the mean; NaN if not recorded) and ``slopes`` (mean physical ∂h/∂input by input name)."""
+        try:
+            slopes = {str(k): float(v) for k, v in json.loads(self.metadata.get("slopes", "{}")).items()}
+        except (ValueError, AttributeError):
+            slopes = {}
+        try:
+            vs = float(self.metadata.get("val_loss_vs_mean", "nan"))
+        except ValueError:
+            vs = float("nan")
+        return {"val_loss_vs_mean": vs, "slopes": slopes}
 
     @property
     def layer_sizes(self) -> tuple[int, ...]:

@@ -13,8 +13,11 @@ recorded state and thrust whatever network flew, and a label (:mod:`neso.learnin
 - ``applied``: the lag-consistent label from the smoothed measured acceleration and the applied
   thrust (any pathway), with the thrust lag identified on the same recordings unless given.
 
-Samples are skipped while the vehicle was on the ground (the simulator's truth says so, or the
-setpoint commanded no thrust); for the ESO labels while the estimator was not warm (its first
+The thrust in newtons is for the recording's own vehicle: its mass is the imported log's
+(``import.mass_kg``) or the controller's ``mass_kg`` parameter recorded at the start of a live flight
+(:func:`recorded_mass`), so a label in m/s² does not depend on the mass given (an import's newtons scale
+with it). Samples are skipped while the vehicle was on the ground (the simulator's truth says so, the
+vehicle's telemetry says it is not in the air, or the setpoint commanded no thrust); for the ESO labels while the estimator was not warm (its first
 ``skip_s`` after a (re)start) or flew another pathway than the label needs; for ``applied`` within
 ``skip_s`` of the start of a stretch of consecutive samples (the smoothing's edges).
 """
@@ -29,6 +32,7 @@ import numpy as np
 
 from neso.features import DEFAULT_FEATURE_SET, FeatureSet, ThrustLag, feature_set
 from neso.learning import LABEL_PATHWAYS, LABELS, FlightSeries, features, identify_thrust_lag, labels
+from neso.types import VehicleModel
 from recordings.reader import Recording, RecordingError, read_recording
 
 
@@ -38,9 +42,11 @@ class TrainingSet:
     y_mps2: np.ndarray  # (N,) z-axis label, m/s²
     label: str  # one of neso.learning.LABELS
     feature_set: str  # "name@version"
-    thrust_lag: ThrustLag  # the applied-thrust model the inputs and labels were made with
+    thrust_lag: ThrustLag  # the applied-thrust model identified (or given): inputs, labels and predictions use it
     recordings: tuple[str, ...]  # the files it came from
     vehicle: str
+    mass_kg: float = VehicleModel().mass_kg  # the vehicle's mass the recordings' thrust is for
+    lag_source: str = "given"  # how thrust_lag was found
 
     def __len__(self) -> int:
         return len(self.y_mps2)
@@ -77,10 +83,37 @@ def _by_seq(channel, names: list[str]) -> tuple[np.ndarray, dict[str, object]]:
     return seq[rows], out
 
 
+def recorded_mass(rec: Recording) -> tuple[float, str]:
+    """(mass kg, where it came from) of the vehicle a recording flew: an imported log's ``import.mass_kg``
+    (``--mass-kg``, or the nominal model's when it was assumed), a live flight's controller parameter
+    ``mass_kg`` at its start; else the controller's nominal model (``assumed``)."""
+    info = rec.properties.get("import") or {}
+    if isinstance(info.get("mass_kg"), (int, float)) and info["mass_kg"] > 0:
+        return float(info["mass_kg"]), "import (assumed)" if info.get("mass_assumed") else "import"
+    controller = (rec.properties.get("params") or {}).get("controller") or {}
+    if isinstance(controller, dict) and isinstance(controller.get("mass_kg"), (int, float)) and controller["mass_kg"] > 0:
+        return float(controller["mass_kg"]), "controller"
+    return VehicleModel().mass_kg, "assumed (nominal model)"
+
+
+def _not_in_air(rec: Recording, vehicle: str | None, stamps_s: np.ndarray) -> np.ndarray:
+    """(N,) True where the vehicle's newest telemetry at or before each stamp says it is not in the air
+    (PX4's land detector; no telemetry: all False)."""
+    tel = rec.channel("telemetry", vehicle)
+    if len(tel) == 0:
+        return np.zeros(len(stamps_s), dtype=bool)
+    t = np.asarray(tel.columns["stamp_s"], dtype=float)
+    order = np.argsort(t, kind="stable")
+    t, in_air = t[order], np.asarray(tel.columns["in_air"]).astype(bool)[order]
+    idx = np.searchsorted(t, stamps_s, side="right") - 1
+    return np.where(idx >= 0, ~in_air[np.maximum(idx, 0)], True)
+
+
 def flight_series(rec: Recording, vehicle: str | None = None) -> tuple[FlightSeries, np.ndarray, dict]:
     """The recording's samples as the estimator saw them: (series, seq (N,), extras) where extras
     holds ``warm_ticks`` (N,; −1 without an estimate) and ``on_ground`` (N,) bool."""
-    seq, st = _by_seq(rec.channel("state", vehicle), ["t_s", "pos_enu_m", "vel_enu_mps", "roll_rad", "pitch_rad"])
+    seq, st = _by_seq(rec.channel("state", vehicle), ["t_s", "stamp_s", "pos_enu_m", "vel_enu_mps", "roll_rad",
+                                                      "pitch_rad"])
     if len(seq) == 0:
         raise RecordingError(f"{rec.path}: no states recorded")
     sp_seq, sp = _by_seq(rec.channel("setpoint", vehicle), ["thrust_n"])
@@ -107,11 +140,12 @@ def flight_series(rec: Recording, vehicle: str | None = None) -> tuple[FlightSer
         on_ground |= np.array([ground.get(s, False) for s in seq.tolist()])
     if thrust_by_seq:
         on_ground |= np.array([thrust_by_seq.get(s, 1.0) <= 0 for s in seq.tolist()])
+    on_ground |= _not_in_air(rec, vehicle, np.asarray(st["stamp_s"], dtype=float))
     series = FlightSeries(t_s=np.asarray(st["t_s"], dtype=float), pos_enu_m=np.asarray(st["pos_enu_m"], dtype=float),
                           vel_enu_mps=np.asarray(st["vel_enu_mps"], dtype=float),
                           roll_rad=np.asarray(st["roll_rad"], dtype=float),
                           pitch_rad=np.asarray(st["pitch_rad"], dtype=float), thrust_prev_n=thrust_prev,
-                          f_hat_mps2=f_hat, pathway=pathway)
+                          f_hat_mps2=f_hat, pathway=pathway, mass_kg=recorded_mass(rec)[0])
     return series, seq, {"warm_ticks": warm, "on_ground": on_ground}
 
 
@@ -125,9 +159,10 @@ def _stretches(seq: np.ndarray) -> list[slice]:
 
 
 def _sub(series: FlightSeries, part: slice) -> FlightSeries:
-    return FlightSeries(series.t_s[part], series.pos_enu_m[part], series.vel_enu_mps[part], series.roll_rad[part],
-                        series.pitch_rad[part], series.thrust_prev_n[part], series.f_hat_mps2[part],
-                        None if series.pathway is None else series.pathway[part])
+    return dataclasses.replace(
+        series, t_s=series.t_s[part], pos_enu_m=series.pos_enu_m[part], vel_enu_mps=series.vel_enu_mps[part],
+        roll_rad=series.roll_rad[part], pitch_rad=series.pitch_rad[part], thrust_prev_n=series.thrust_prev_n[part],
+        f_hat_mps2=series.f_hat_mps2[part], pathway=None if series.pathway is None else series.pathway[part])
 
 
 def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip_s: float = 0.5,
@@ -182,8 +217,9 @@ def _offline_teacher(rec: Recording, series: FlightSeries, seq: np.ndarray, extr
 def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATURE_SET,
                       lag: ThrustLag | None = None, skip_s: float = 0.5) -> TrainingSet:
     """Training pairs from one or more ``.rrd`` files (a path or a list of them) of one vehicle.
-    ``lag``: the applied-thrust model (None: identified on these recordings when the label or the
-    inputs need it). Raises :class:`RecordingError` naming the file and the reasons when a file gives
+    ``lag``: the applied-thrust model (None: identified on these recordings; the closed-loop prediction
+    flies it whatever the label; when there is no airborne stretch to identify it on, a label and inputs
+    that need it are refused, the others get no lag and say so in ``lag_source``). Raises :class:`RecordingError` naming the file and the reasons when a file gives
     no usable sample, or when the files record different vehicles."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
@@ -195,10 +231,17 @@ def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATU
     vehicles = {r.vehicle for r in recs}
     if len(vehicles) != 1:
         raise RecordingError(f"recordings of different vehicles {sorted(vehicles)}: train one vehicle at a time")
+    masses = {recorded_mass(r)[0] for r in recs}
+    if len(masses) != 1:
+        raise RecordingError(f"recordings of different vehicle masses {sorted(masses)} kg: train one vehicle at a time")
+    lag_source = "given"
     if lag is None:
-        lag = ThrustLag()
-        if label == "applied" or fset.uses_applied_thrust:
-            lag = identify_thrust_lag(_airborne_series(recs))[0]
+        try:
+            lag, lag_source = identify_thrust_lag(_airborne_series(recs))[0], "identified"
+        except RecordingError as exc:
+            if label == "applied" or fset.uses_applied_thrust:
+                raise
+            lag, lag_source = ThrustLag(), f"none ({exc})"
     zs, ys = [], []
     for path, rec in zip(paths, recs):
         sel = select(rec, label, fset, lag, skip_s=skip_s)
@@ -212,7 +255,7 @@ def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATU
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(y))):
         raise RecordingError(f"non-finite values in the training pairs from {paths}")
     return TrainingSet(z=z, y_mps2=y, label=label, feature_set=fset.key, thrust_lag=lag, recordings=tuple(paths),
-                       vehicle=vehicles.pop())
+                       vehicle=vehicles.pop(), mass_kg=masses.pop(), lag_source=lag_source)
 
 
 def _airborne_series(recs: list[Recording]) -> list[FlightSeries]:

@@ -44,7 +44,8 @@ class Entry:
         return {"id": self.id, "vehicle": self.vehicle, "label": i.get("label", ""), "parent": i.get("parent", ""),
                 "created": i.get("created", ""), "lipschitz_norm": i.get("lipschitz_norm"),
                 "lipschitz_phys": i.get("lipschitz_phys"), "certified_phys": i.get("certified_phys"),
-                "val_loss": i.get("val_loss"),
+                "val_loss": i.get("val_loss"), "val_loss_vs_mean": i.get("val_loss_vs_mean"),
+                "slopes": i.get("slopes") or {},
                 "certificate_holds": (i.get("certificate") or {}).get("holds"),
                 "feature_set": i.get("feature_set", ""), "predicted_change": (i.get("predicted") or {}).get("change"),
                 "recordings": i.get("recordings", []), "path": self.path}
@@ -68,6 +69,7 @@ def store(net: LipschitzMLP, *, root: str | os.PathLike = DEFAULT_ROOT, vehicle:
         "certified_norm": net.certified_lipschitz_normalised(), "certified_phys": net.certified_lipschitz_physical(),
         "val_loss": float(net.metadata.get("val_loss", "nan")),
         "val_loss_physical": float(net.metadata.get("val_loss_physical", "nan")),
+        **net.learned,
         "certificate": certificate, "feature_set": net.feature_set.key, "bound_units": net.bound_units,
         "predicted": dict(predicted or {}),
     }

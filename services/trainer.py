@@ -18,9 +18,11 @@ and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
 
 Before it offers, the trainer flies the recorded flights again in closed loop
 (:mod:`sim.counterfactual`: the recorded reference, the disturbance reconstructed from the
-recording injected) with the active network and with the candidate on the same conditions; the
-predicted z RMSE change goes with the offer, into the registry and onto the dashboard. A
-candidate predicted to fly worse is stored but not offered unless ``force_offer``.
+recording injected, the vehicle's recorded mass and the thrust delay and lag identified on the same
+recordings, whatever the label) with the active network and with the candidate on the same conditions;
+the predicted z RMSE change goes with the offer, into the registry and onto the dashboard. A
+candidate predicted to fly worse is stored but not offered unless ``force_offer``; a candidate whose
+validation loss is not below that of predicting the mean has learned nothing and is never offered.
 - ``status``: what the worker is doing and the last result.
 
 A retried ``train`` is queued once (the node answers a repeated request id with the first answer).
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import math
 import os
 import queue
 import time
@@ -99,8 +102,18 @@ class JobResult:
         pred = (f"; predicted on the recorded flight(s): z RMSE {p['rmse_active_cm']:.2f} → {p['rmse_candidate_cm']:.2f} cm "
                 f"({p['change'] * 100:+.0f} %)" if "change" in p else "")
         return (f"{self.network_id} at {self.path}: {i.get('n_samples')} {i.get('label')} samples "
-                f"({i.get('feature_set')}) from {len(self.job.recordings)} recording(s), val_loss {i.get('val_loss'):.4g}, "
-                f"certified L_N {i.get('certified_phys'):.4g} physical; {cert.get('text', '')}{pred}; {times}{offer}")
+                f"({i.get('feature_set')}, {i.get('mass_kg', float('nan')):g} kg) from {len(self.job.recordings)} "
+                f"recording(s), {learned_text(i)}, certified L_N {i.get('certified_phys'):.4g} physical; "
+                f"{cert.get('text', '')}{pred}; {times}{offer}")
+
+
+def learned_text(info: dict) -> str:
+    """What a network learned, in one phrase: validation against the mean and the physical slopes."""
+    vs = info.get("val_loss_vs_mean")
+    vs_text = f"val loss {vs:.3f} × the mean's" if isinstance(vs, float) and math.isfinite(vs) else "val loss unknown"
+    slopes = info.get("slopes") or {}
+    slope_text = ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items())
+    return f"{vs_text}; slopes ∂f_N/∂input: {slope_text or 'none'}"
 
 
 def parse_job(number: int, args: dict, config: TrainerConfig) -> Job:
@@ -222,11 +235,14 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     entry = registry.store(res.network, root=config.registry, vehicle=vehicle, label=label, parent=parent,
                            recordings=list(job.recordings), certificate=cert, predicted=result.predicted)
     result.network_id, result.path = entry.id, os.path.abspath(entry.path)
-    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set)
+    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set, mass_kg=ts.mass_kg)
     result.timings_s["store"] = time.perf_counter() - t4
     if job.offer and offer_fn is not None:
         change = result.predicted.get("change")
-        if isinstance(change, float) and change >= 0 and not job.force_offer:
+        if not res.val_loss_vs_mean < 1.0:
+            result.offer = (False, f"not offered: its validation loss is {res.val_loss_vs_mean:.3f} × that of predicting "
+                                   "the mean (it learned nothing the observer does not already remove)")
+        elif isinstance(change, float) and change >= 0 and not job.force_offer:
             result.offer = (False, f"not offered: predicted to fly worse ({change * 100:+.0f} % z RMSE on the recorded "
                                    "flight); train with force_offer=true to offer it anyway")
         else:
@@ -247,7 +263,7 @@ def predict_closed_loop(recordings, active_net, candidate_net, lag, kp: float, k
     from recordings.reader import read_recording
     from sim.counterfactual import predict_change
 
-    conditions = [c for path in recordings for c in recorded_conditions(read_recording(path), lag)]
+    conditions = [c for path in recordings for c in recorded_conditions(read_recording(path), lag)]  # recorded masses
     if not conditions:
         return {}
     control = ControlConfig()

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -31,7 +31,8 @@ class RecordedConditions:
     """One recorded stretch of flight, sampled at ``dt_s``: ``t_s`` (N,), the reference flown
     (``ref_pos_enu_m``, ``ref_vel_enu_mps``, ``ref_acc_enu_mps2`` (N, 3), ``ref_yaw_rad`` (N,)), the
     reconstructed disturbance ``disturbance_enu_mps2`` (N, 3), the measured start
-    (``pos0_enu_m``, ``vel0_enu_mps``, ``thrust0_n``) and the vehicle's thrust response ``lag``."""
+    (``pos0_enu_m``, ``vel0_enu_mps``, ``thrust0_n``), the vehicle's thrust response ``lag`` and its mass
+    ``mass_kg`` (the controller and the plant fly it again with that mass)."""
 
     t_s: np.ndarray
     ref_pos_enu_m: np.ndarray
@@ -44,6 +45,7 @@ class RecordedConditions:
     thrust0_n: float
     lag: ThrustLag
     dt_s: float = LOOP_PERIOD_S
+    mass_kg: float = VehicleModel().mass_kg
 
     @property
     def duration_s(self) -> float:
@@ -136,8 +138,10 @@ class RecordedWorld:
 
 
 def fly_recorded(conditions: RecordedConditions, estimator, control: ControlConfig = ControlConfig()) -> FlightLog:
-    """Fly the recorded reference with ``estimator`` in the recorded world."""
+    """Fly the recorded reference with ``estimator`` in the recorded world, the controller's model and the
+    plant at the recorded vehicle's mass."""
     reference = RecordedReference(conditions)
+    control = replace(control, vehicle=replace(control.vehicle, mass_kg=conditions.mass_kg))
     return fly(plant=RecordedWorld(conditions, control.vehicle), estimator=estimator, trajectory=reference,
                seed=0, control=control)
 

@@ -121,6 +121,31 @@ def test_thrust_in_newtons_is_normalised_thrust_times_mg_over_hover_thrust(tmp_p
     assert given.info["hover_thrust_source"] == "given: 0.4"
 
 
+@pytest.mark.parametrize("log", [CUBE_LOG, SITL_LOG], ids=["cubeorange", "sitl"])
+def test_labels_in_m_per_s2_do_not_depend_on_the_mass_given_at_import(tmp_path, log):
+    """The newtons scale with --mass-kg, so the labels (and the thrust response found) must not: the
+    dataset takes the recording's own mass. Once 1 kg was used whatever the import said (2.65 kg: the
+    applied labels' mean came out −16.9 m/s² instead of −0.27 on real flights)."""
+    nominal = import_px4_log(log, tmp_path / "1kg").path
+    heavy = import_px4_log(log, tmp_path / "heavy", ImportConfig(mass_kg=2.65)).path
+    for label in ("applied", "eso"):
+        a = load_training_set(nominal, label)
+        b = load_training_set(heavy, label)
+        assert (a.mass_kg, b.mass_kg) == (1.0, 2.65)
+        assert a.thrust_lag == b.thrust_lag and a.lag_source == b.lag_source == "identified"
+        np.testing.assert_allclose(b.y_mps2, a.y_mps2, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(b.z, a.z, rtol=0, atol=1e-9)
+
+
+def test_only_samples_in_the_air_are_labelled(tmp_path):
+    """PX4's land detector (the imported telemetry's in_air) keeps the ground out of the labels: on the
+    ground the floor, not the thrust, holds the vehicle, and a label there is −(T/m − g) ≈ g."""
+    rec = read_recording(import_px4_log(CUBE_LOG, tmp_path).path)
+    ts = load_training_set(rec.path, "applied")
+    in_air = np.asarray(rec.channel("telemetry").columns["in_air"]).astype(bool)
+    assert 0 < len(ts) < 0.5 * len(rec.channel("state")) and in_air.mean() < 0.5
+
+
 def steady_flight(vz: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Samples clear of the ground whose vertical velocity hardly changes (no vertical acceleration)."""
     dv = np.abs(np.gradient(vz))
