@@ -1,12 +1,21 @@
 """``neso certify``: the small-gain stability certificate of the paper's Section IV.
 
 Exit code 0 when the certificate holds for the chosen method (``both``: the tight one; ``all``, the default:
-the LMI one, the tightest), 1 when it does not, 2 for bad input (a network file that cannot be read,
-invalid gains).
+the role certificate, the tightest and the one the services fly by), 1 when it does not, 2 for bad input (a
+network file that cannot be read, invalid gains).
+
+Methods: ``literal``, ``tight`` and ``lmi`` take the paper's Lemma 1 (the whole input z through ``‖ż‖``);
+``roles`` (:mod:`neso.certificate.roles`) counts only the state inputs (p_z, v_z) in the loop gain and the
+exogenous ones (attitude, thrust) in the constant.
 
 ``--network FILE|default``: the L_N certified is the network's exact physical Lipschitz constant (the
-SVD product of its weights with the z-scores folded in); ``default`` is the network ``neso up`` flies.
-The gains default to the controller's (z axis) and the observer bandwidth to the estimator's.
+SVD product of its weights with the z-scores folded in): of all its inputs for Lemma 1's methods, of its
+state inputs for ``roles`` (its exogenous inputs' figure moves the ultimate bound); ``default`` is the
+network ``neso up`` flies. The gains default to the controller's (z axis) and the observer bandwidth to the
+estimator's.
+
+``--frontier``: the largest certified L_N of every method over a grid of k_p, k_d, ω_o (a table; ``--json``;
+``--plot FILE.png``): how gains and budget are chosen together.
 
 ``--json`` output: the chosen method's fields at top level (at least ``holds``, ``alpha_e``, ``alpha_o``,
 ``ultimate_bound``, ``max_certified_lipschitz``); with ``--method both`` the top level is the TIGHT certificate
@@ -46,11 +55,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "2 the input is refused (e.g. an unreadable network file).",
     )
     kp, kd, omega_o, _ = _flight_defaults()
-    p.add_argument("--kp", type=float, default=kp, help="proportional gain, 1/s^2 (default: the controller's z, %(default)s)")
-    p.add_argument("--kd", type=float, default=kd, help="derivative gain, 1/s (default: the controller's z, %(default)s)")
-    p.add_argument("--omega-o", type=float, default=omega_o, help="observer bandwidth, rad/s (default %(default)s)")
+    p.add_argument("--kp", type=_numbers, default=(kp,), help="proportional gain, 1/s^2 (default: the controller's z, "
+                   f"{kp:g}; --frontier: comma-separated, default {','.join(map(str, FRONTIER_KP))})")
+    p.add_argument("--kd", type=_numbers, default=(kd,), help="derivative gain, 1/s (default: the controller's z, "
+                   f"{kd:g}; --frontier: default {','.join(map(str, FRONTIER_KD))})")
+    p.add_argument("--omega-o", type=_numbers, default=(omega_o,), help="observer bandwidth, rad/s (default "
+                   f"{omega_o:g}; --frontier: default {','.join(map(str, FRONTIER_OMEGA))})")
+    p.add_argument("--plot", default=None, metavar="FILE.png", help="with --frontier: a plot of the frontier")
     what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--lipschitz", type=float, help="network Lipschitz constant L_N (physical)")
+    what.add_argument("--lipschitz", type=float, help="network Lipschitz constant L_N (physical; for roles: in the "
+                      "state inputs, and the exogenous inputs' taken equal)")
+    what.add_argument("--frontier", action="store_true", help="the largest certified L_N of every method over a "
+                      "grid of gains (--kp/--kd/--omega-o lists with commas)")
     what.add_argument("--network", metavar="FILE|default",
                       help="certify this network file's exact physical L_N ('default': the network neso up flies)")
     p.add_argument("--L1", type=float, default=_DEFAULTS["L1"], help="bound on |df/dt|, m/s^3 (default %(default)s)")
@@ -61,15 +77,31 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--lambda-c-rule", choices=("corrected", "paper"), default="corrected",
                    help="lambda_c: 'corrected' sqrt(kp^2+(kd+1)^2) covers the |de/dt| term the paper's Lemma 1 "
                    "drops; 'paper' sqrt(kp^2+kd^2) as printed (default %(default)s)")
-    p.add_argument("--method", choices=("literal", "tight", "lmi", "both", "all"), default="all",
+    p.add_argument("--method", choices=("literal", "tight", "lmi", "roles", "both", "all"), default="all",
                    help="literal: paper as written (Q=I, Young splits); tight: optimised scalings/weights; "
-                   "lmi: quadratic V=E'PE by SDP (cvxpy + Clarabel), re-verified in numpy (all: same assumptions); "
-                   "both: literal and tight, verdict from tight; all (default): the three, verdict from lmi")
+                   "lmi: quadratic V=E'PE by SDP (cvxpy + Clarabel), re-verified in numpy (these three: Lemma 1); "
+                   "roles: the state inputs in the loop gain, the others in the constant (SDP, re-verified); "
+                   "both: literal and tight, verdict from tight; all (default): the four, verdict from roles")
     p.add_argument("--json", action="store_true", help="print JSON instead of text: the verdict, each method's "
                    "figures, the inputs (compact)")
     p.add_argument("--verbose", action="store_true", help="with --json: every method's matrices and terms too")
     p.set_defaults(func=run)
     return p
+
+
+FRONTIER_KP = (4.0, 10.0, 20.0)
+FRONTIER_KD = (3.0, 6.0, 10.0)
+FRONTIER_OMEGA = (10.0, 15.0, 20.0, 30.0)
+
+
+def _numbers(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in str(text).split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number or a comma-separated list of numbers: {text!r}") from None
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"gains must be positive and finite, got {text!r}")
+    return values
 
 
 def _network(args) -> tuple[float, dict]:
@@ -86,9 +118,12 @@ def _network(args) -> tuple[float, dict]:
     except (OSError, NetworkFileError) as exc:
         raise ValueError(f"{path}: {exc}") from None
     lip = net.certified_lipschitz_physical()
+    exo = tuple(i for i in range(net.n_inputs) if i not in net.state_columns)
     return lip, {"path": path, "id": net.metadata.get("id", ""), "feature_set": net.feature_set.key,
                  "bound_units": net.bound_units, "lipschitz_bound": net.lipschitz_bound,
                  "certified_lipschitz_physical": lip,
+                 "certified_lipschitz_state": net.certified_lipschitz_state(),
+                 "certified_lipschitz_exogenous": net.certified_lipschitz_columns(exo) if exo else 0.0,
                  "certified_lipschitz_normalised": net.certified_lipschitz_normalised()}
 
 
@@ -96,7 +131,7 @@ def _inputs(args, lipschitz: float):
     from neso.certificate import CertificateInputs
 
     return CertificateInputs(
-        kp=args.kp, kd=args.kd, omega_o=args.omega_o, lipschitz=lipschitz, n_axes=args.n_axes,
+        kp=args.kp[0], kd=args.kd[0], omega_o=args.omega_o[0], lipschitz=lipschitz, n_axes=args.n_axes,
         L_1=args.L1, L_u=args.Lu, ref_vel_max=args.ref_vel_max, ref_acc_max=args.ref_acc_max,
         lambda_c_rule=args.lambda_c_rule,
     )
@@ -107,6 +142,12 @@ def _fmt(v: float) -> str:
 
 
 def _text(res) -> list[str]:
+    if res.method == "roles":
+        return [f"[roles] {'HOLDS' if res.holds else 'FAILS'}",
+                f"  L_N in the state inputs {_fmt(res.lipschitz_state)} (max certified {_fmt(res.max_certified)}), "
+                f"exogenous {_fmt(res.lipschitz_exo)}   [(m/s^2) per unit z, physical]",
+                f"  eventual bound ||E|| <= {_fmt(res.ultimate_bound)} [mixed SI]; C_f = {_fmt(res.C_f)} m/s^3; "
+                f"V' <= -alpha V + mu w^2 (alpha = {_fmt(res.alpha)} 1/s), re-verified in numpy"]
     lines = [
         f"[{res.method}] {'HOLDS' if res.holds else 'FAILS'}",
         f"  alpha_e = {_fmt(res.alpha_e)}   alpha_o = {_fmt(res.alpha_o)}   (margins; > 0 iff holds)",
@@ -135,7 +176,8 @@ def _json(args, inputs, results: dict, main, network: dict | None) -> dict:
     ``methods`` each method's figures, or with ``--verbose`` everything it computed (matrices, terms, notes);
     the inputs; the network when one was given."""
     full = {name: res.to_json_dict() for name, res in results.items()}
-    out = {k: full[main.method][k] for k in VERDICT}
+    main_name = next(name for name, res in results.items() if res is main)
+    out = {k: full[main_name][k] for k in VERDICT}
     out["margin"] = None if out["max_certified_lipschitz"] is None else out["max_certified_lipschitz"] - inputs.lipschitz
     out["methods"] = full if args.verbose else {name: {k: d[k] for k in FIGURES} for name, d in full.items()}
     out["inputs"] = {
@@ -144,16 +186,99 @@ def _json(args, inputs, results: dict, main, network: dict | None) -> dict:
         "ref_acc_max": inputs.ref_acc_max, "n_axes": inputs.n_axes, "lambda_c_rule": inputs.lambda_c_rule,
         "method": args.method,
     }
-    out["units"] = full[main.method]["units"]
+    out["units"] = full[main_name]["units"]
     if network is not None:
         out["network"] = network
     return out
+
+
+def _roles(args, inputs, network: dict | None):
+    from neso.certificate import RoleInputs, certify_roles
+
+    state = network["certified_lipschitz_state"] if network else inputs.lipschitz
+    exo = network["certified_lipschitz_exogenous"] if network else inputs.lipschitz
+    return certify_roles(RoleInputs(inputs.kp, inputs.kd, inputs.omega_o, lipschitz_state=state, lipschitz_exo=exo,
+                                    L_1=inputs.L_1, exo_rate_max=inputs.L_u, ref_vel_max=inputs.ref_vel_max,
+                                    ref_acc_max=inputs.ref_acc_max))
+
+
+def frontier_rows(kps, kds, omegas) -> list[dict]:
+    """One row per gain set: the largest certified L_N ((m/s²) per unit z) of every method and the role
+    certificate's exact ``1/‖G‖_∞``."""
+    from neso.certificate import (CertificateInputs, certify_literal, certify_tight, max_certified_lipschitz_best,
+                                  max_certified_state_lipschitz, max_certified_state_lipschitz_verified)
+
+    rows = []
+    for kp in kps:
+        for kd in kds:
+            for w in omegas:
+                inputs = CertificateInputs(kp=kp, kd=kd, omega_o=w, lipschitz=0.0)
+                rows.append({"kp": kp, "kd": kd, "omega_o": w,
+                             "literal": certify_literal(inputs).max_certified_lipschitz,
+                             "tight": certify_tight(inputs, optimise_bound=False).max_certified_lipschitz,
+                             "lmi": max_certified_lipschitz_best(kp, kd, w),
+                             "roles": max_certified_state_lipschitz_verified(kp, kd, w),
+                             "roles_exact": max_certified_state_lipschitz(kp, kd, w)})
+    return rows
+
+
+def _frontier(args) -> int:
+    from neso.learning import DEFAULT_RECIPE, RECIPES
+
+    kps = args.kp if len(args.kp) > 1 or args.kp != (_flight_defaults()[0],) else FRONTIER_KP
+    kds = args.kd if len(args.kd) > 1 or args.kd != (_flight_defaults()[1],) else FRONTIER_KD
+    omegas = args.omega_o if len(args.omega_o) > 1 or args.omega_o != (_flight_defaults()[2],) else FRONTIER_OMEGA
+    rows = frontier_rows(kps, kds, omegas)
+    fraction = RECIPES[DEFAULT_RECIPE].certified_fraction
+    if args.json:
+        print(json.dumps({"rows": rows, "trainer_fraction": fraction,
+                          "units": "(m/s^2) per unit z, physical; roles: in the state inputs"}, indent=1))
+    else:
+        print(f"largest certified L_N, (m/s^2) per unit z (the trainer spends {fraction:g} × roles):")
+        print(f"{'kp':>5} {'kd':>5} {'ω_o':>5} {'literal':>9} {'tight':>8} {'lmi':>8} {'roles':>8} {'roles/lmi':>9}")
+        for r in rows:
+            print(f"{r['kp']:5g} {r['kd']:5g} {r['omega_o']:5g} {r['literal']:9.4g} {r['tight']:8.4g} "
+                  f"{r['lmi']:8.4g} {r['roles']:8.4g} {r['roles'] / r['lmi']:9.2f}")
+    if args.plot:
+        _plot_frontier(rows, args.plot)
+        if not args.json:
+            print(f"plot: {args.plot}")
+    return 0
+
+
+def _plot_frontier(rows: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kps = sorted({r["kp"] for r in rows})
+    fig, axes = plt.subplots(1, len(kps), figsize=(4.2 * len(kps), 3.6), sharey=True, squeeze=False)
+    for ax, kp in zip(axes[0], kps):
+        for kd in sorted({r["kd"] for r in rows}):
+            sel = sorted((r for r in rows if r["kp"] == kp and r["kd"] == kd), key=lambda r: r["omega_o"])
+            w = [r["omega_o"] for r in sel]
+            line, = ax.plot(w, [r["roles"] for r in sel], "o-", label=f"roles, k_d {kd:g}")
+            ax.plot(w, [r["lmi"] for r in sel], "s--", color=line.get_color(), alpha=0.6, label=f"LMI, k_d {kd:g}")
+        ax.set_title(f"k_p = {kp:g} 1/s²")
+        ax.set_xlabel("ω_o (rad/s)")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("largest certified L_N ((m/s²)/unit z)")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def run(args) -> int:
     """Compute, print (text or ``--json``) and return 0 if the certificate holds, 1 otherwise."""
     from neso.certificate import certify_lmi, certify_literal, certify_tight
 
+    if args.frontier:
+        return _frontier(args)
+    if max(len(args.kp), len(args.kd), len(args.omega_o)) > 1:
+        print("neso certify: several gains are for --frontier; certify one set at a time")
+        return 2
     network = None
     try:
         lipschitz = args.lipschitz
@@ -170,14 +295,17 @@ def run(args) -> int:
         results["tight"] = certify_tight(inputs)
     if args.method in ("lmi", "all"):
         results["lmi"] = certify_lmi(inputs)
-    main = results[{"both": "tight", "all": "lmi"}.get(args.method, args.method)]
+    if args.method in ("roles", "all"):
+        results["roles"] = _roles(args, inputs, network)
+    main = results[{"both": "tight", "all": "roles"}.get(args.method, args.method)]
 
     if args.json:
         print(json.dumps(_json(args, inputs, results, main, network), indent=2))
     else:
         if network is not None:
             print(f"network {network['path']} ({network['id']}, inputs {network['feature_set']}): exact physical L_N "
-                  f"{network['certified_lipschitz_physical']:.4g} (m/s^2)/unit z "
+                  f"{network['certified_lipschitz_physical']:.4g} (m/s^2)/unit z, "
+                  f"{network['certified_lipschitz_state']:.4g} in its state inputs "
                   f"({network['certified_lipschitz_normalised']:.4g} normalised)")
         print(f"Neural-ESO certificate: kp={inputs.kp:g} 1/s^2, kd={inputs.kd:g} 1/s, omega_o={inputs.omega_o:g} "
               f"rad/s, L_N={inputs.lipschitz:g} (m/s^2)/unit z; L1={inputs.L_1:g} m/s^3, Lu={inputs.L_u:g}, "

@@ -45,7 +45,7 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
             continue
         meta = net.metadata
         certified = net.certified_lipschitz_physical()
-        cert = flight_certificate(certified, kp=gains.kp, kd=gains.kd, omega_o=gains.omega_o_rps)
+        cert = flight_certificate(net.certified_lipschitz_state(), kp=gains.kp, kd=gains.kd, omega_o=gains.omega_o_rps)
         val = meta.get("val_loss")
         rows.append({"where": "shipped", "id": meta.get("id", path.stem), "vehicle": meta.get("vehicle", ""),
                      "label": meta.get("training_data", "").split(":")[0], "parent": "" if meta.get("warm_start", "no") == "no" else meta["warm_start"],

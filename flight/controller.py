@@ -30,7 +30,7 @@ import numpy as np
 from flight import forget_older
 from flight.mission import COMMANDS, Mission, MissionConfig
 from flight.ratecheck import RateCheck
-from neso.certificate import flight_certificate, max_certified_lipschitz_best
+from neso.certificate import flight_budget, flight_certificate
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
@@ -146,7 +146,7 @@ class ControllerCore:
         """Compute (and cache) the certified bound for the proposed z gains, outside any lock."""
         inputs = self._certificate_inputs()
         if inputs is not None:
-            max_certified_lipschitz_best(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
+            flight_budget(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
 
     def check_gains(self, values: dict) -> Refusal | None:
         """Refuse (overridably) z gains under which the network flown is not certified."""

@@ -61,7 +61,7 @@ import numpy as np
 from flight import forget_older
 from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
 from flight.ratecheck import RateCheck
-from neso.certificate import FlightCertificate, flight_certificate, max_certified_lipschitz_best
+from neso.certificate import FlightCertificate, flight_budget, flight_certificate
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
@@ -151,7 +151,7 @@ class NetworkChoice:
         """(network, what was done) for L_N = ``bound`` physical (call only if :meth:`refusal` is None)."""
         for b, (net, path) in self.trained.items():
             if _same_bound(b, bound):
-                if b > bound:  # trained a hair above what was asked: never fly more than asked
+                if b > bound and net.certified_lipschitz() > bound:  # never fly more than asked
                     net = net.scaled_to_bound(bound, "physical")
                 return net, f"loaded {path}, trained for L_N={b:.4g} (certified {net.certified_lipschitz_physical():.4g} " \
                             f"physical, {net.certified_lipschitz_normalised():.4g} normalised)"
@@ -200,9 +200,10 @@ class EstimatorCore:
 
     # -- the certificate -------------------------------------------------------------------
     def certificate_of(self, net: LipschitzMLP | None, gains_z: tuple[float, float] | None = None) -> FlightCertificate:
-        """The certificate of flying ``net`` (its exact physical Lipschitz constant; 0 without one)."""
+        """The certificate of flying ``net`` (its exact physical Lipschitz constant in its state inputs; 0 without
+        one)."""
         kp, kd = gains_z or self.gains_z
-        lip = net.certified_lipschitz_physical() if net is not None else 0.0
+        lip = net.certified_lipschitz_state() if net is not None else 0.0
         return flight_certificate(lip, kp=kp, kd=kd, omega_o=self.config.omega_o_rps)
 
     def certificate(self) -> FlightCertificate:
@@ -217,7 +218,7 @@ class EstimatorCore:
         return None if cert.holds else f"controller gains changed: {cert.text()}"
 
     def prepare(self, values: dict) -> None:
-        max_certified_lipschitz_best(self.gains_z[0], self.gains_z[1], self.config.omega_o_rps)  # warm the cache
+        flight_budget(self.gains_z[0], self.gains_z[1], self.config.omega_o_rps)  # warm the cache
 
     # -- live parameters ----------------------------------------------------------------
     def check(self, values: dict) -> str | Refusal | None:
@@ -443,7 +444,8 @@ def _describe(net: LipschitzMLP | None, source: str, path: str, net_id: str | No
             "vehicle": net.metadata.get("vehicle", ""), "parent": net.metadata.get("parent", ""),
             "feature_set": net.feature_set.key, "bound_units": net.bound_units,
             "lipschitz_norm": net.certified_lipschitz_normalised(), "lipschitz_phys": net.certified_lipschitz_physical(),
-            "certified_phys": net.certified_lipschitz_physical(), "val_loss": net.metadata.get("val_loss", ""),
+            "certified_phys": net.certified_lipschitz_physical(), "certified_state": net.certified_lipschitz_state(),
+            "val_loss": net.metadata.get("val_loss", ""),
             **_learned(net)}
 
 
@@ -479,7 +481,7 @@ def startup_network(config: EstimatorConfig, network: LipschitzMLP | None, core_
     unless ``allow_uncertified``."""
     if network is None:
         return None, None
-    cert = flight_certificate(network.certified_lipschitz_physical(), kp=core_gains[0], kd=core_gains[1],
+    cert = flight_certificate(network.certified_lipschitz_state(), kp=core_gains[0], kd=core_gains[1],
                               omega_o=config.omega_o_rps)
     if cert.holds:
         return network, ("info", f"network {config.network}: {cert.text()}")

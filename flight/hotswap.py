@@ -53,7 +53,7 @@ def gate(data: bytes, *, active: LipschitzMLP | None, vehicle: str) -> GateVerdi
         return GateVerdict(None, f"wrong layer shapes: candidate {findings['layers']}, active "
                                  f"{'→'.join(str(n) for n in active.layer_sizes)} (hidden and output layers must match)",
                            findings)
-    cert_phys, bound_phys = net.certified_lipschitz_physical(), net.lipschitz_bound_physical()
+    cert_phys, bound_phys = net.certified_lipschitz_state(), net.lipschitz_bound_physical()
     findings["certified_lipschitz_physical"] = f"{cert_phys:.6g}"
     findings["lipschitz_bound_physical"] = f"{bound_phys:.6g}"
     if not cert_phys <= bound_phys * (1 + CERT_RTOL):

@@ -167,7 +167,9 @@ class Recipe:
     certificate needs). ``lipschitz_bound``: the bound in those units; ``None`` means the largest
     the stability certificate allows for the gains flown (physical units only).
     ``tdr_scalers``: ``init`` keeps the base network's z-scores, ``fit`` refits them on the new
-    data (:func:`neso.training.train_lipschitz_mlp`).
+    data (:func:`neso.training.train_lipschitz_mlp`). ``certified_fraction``: the physical bound on the state
+    inputs as a fraction of the largest certified (:func:`neso.certificate.flight_budget`);
+    ``exogenous_fraction``: the other inputs' bound as a multiple of it (:func:`recipe_blocks`).
     """
 
     name: str
@@ -178,6 +180,7 @@ class Recipe:
     lipschitz_bound: float | None
     tdr_scalers: str
     certified_fraction: float = 0.9
+    exogenous_fraction: float = 1.0
     description: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -210,6 +213,18 @@ def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float) -> float:
     """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown."""
     if recipe.lipschitz_bound is not None:
         return recipe.lipschitz_bound
-    from neso.certificate import max_certified_lipschitz_best
+    from neso.certificate import flight_budget
 
-    return recipe.certified_fraction * max_certified_lipschitz_best(kp, kd, omega_o)
+    return recipe.certified_fraction * flight_budget(kp, kd, omega_o)
+
+
+def recipe_blocks(recipe: Recipe, fset: FeatureSet, bound: float):
+    """``(blocks, bounds)`` for :func:`neso.training.train_lipschitz_mlp`: for a physical recipe, the state
+    inputs under ``bound`` (the certificate's loop gain) and the exogenous ones under
+    ``recipe.exogenous_fraction × bound`` (they move only the ultimate bound, :mod:`neso.certificate.roles`);
+    ``(None, None)`` otherwise (one bound on everything)."""
+    state = fset.state_columns
+    exo = tuple(i for i in range(fset.size) if i not in state)
+    if recipe.bound_units != "physical" or not state or not exo:
+        return None, None
+    return (state, exo), (bound, recipe.exogenous_fraction * bound)

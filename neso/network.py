@@ -11,13 +11,14 @@ Two Lipschitz constants, both certified from the weights by exact SVD products (
 * *normalised*, ``∏ ‖W_i‖``: the paper's ``||h||_Lip <= L_N`` on the z-scored map;
 * *physical*, ``∏ ‖W̃_i‖`` with the z-scores folded into the end layers,
   ``W̃_1 = W_1 diag(1/σ_z)`` and ``W̃_n = diag(σ_y) W_n``: (m/s²) per unit of the mixed-SI
-  input (Euclidean norm), what the small-gain certificate needs (DESIGN.md "Lipschitz units").
+  input (Euclidean norm) (DESIGN.md "Lipschitz units"); restricted to the columns of the axis'
+  tracked state (``certified_lipschitz_state``) it is what the small-gain certificate needs.
   It is never above the loose ``L_N·max σ_y/min σ_z``: a roll angle with σ = 0.024 rad no
   longer inflates a bound on an input the network barely uses.
 
 A network states its bound in one of the two (``bound_units``): the paper's networks in
-normalised units, this project's default networks in physical units (trained to the largest
-bound the certificate allows for the gains flown).
+normalised units, this project's default networks in physical units on the state inputs (trained
+to the largest bound the certificate allows for the gains flown).
 
 No torch here: this module runs in the control loop.
 """
@@ -251,15 +252,33 @@ class LipschitzMLP:
         ws[0] = ws[0][:, list(columns)]
         return float(np.prod(spectral_norms(ws)))
 
+    @property
+    def state_columns(self) -> tuple[int, ...]:
+        """The inputs that are its axis' tracked state (position, velocity): the ones the stability certificate
+        counts in the loop gain (:mod:`neso.certificate.roles`); every input if its feature set is unknown."""
+        try:
+            return self.feature_set.state_columns
+        except FeatureSetError:
+            return tuple(range(self.n_inputs))
+
+    def certified_lipschitz_state(self) -> float:
+        """Upper bound on the Lipschitz constant in the state inputs alone, physical units (0 without any):
+        what the stability certificate's verdict needs."""
+        cols = self.state_columns
+        return self.certified_lipschitz_columns(cols) if cols else 0.0
+
     def certified_lipschitz(self) -> float:
-        """The certificate in the network's own ``bound_units``."""
+        """The certificate in the network's own ``bound_units``: normalised, the whole z-scored map; physical,
+        the state inputs (a physical bound states the loop gain the certificate needs; the other inputs only
+        move the ultimate bound, :mod:`neso.certificate.roles`)."""
         if self.bound_units == "physical":
-            return self.certified_lipschitz_physical()
+            return self.certified_lipschitz_state()
         return self.certified_lipschitz_normalised()
 
     def lipschitz_bound_physical(self) -> float:
-        """The stated bound in physical units: itself, or for a normalised bound the (loose)
-        ``L_N * max(output_std) / min(input_std)``, which the folded certificate never exceeds."""
+        """The stated bound in physical units: itself (on the state inputs), or for a normalised bound the
+        (loose) ``L_N * max(output_std) / min(input_std)``, which the folded certificate of all the inputs,
+        hence of the state inputs, never exceeds."""
         if self.bound_units == "physical":
             return float(self.lipschitz_bound)
         return self.lipschitz_bound * float(np.max(self.output_std)) / float(np.min(self.input_std))
@@ -280,9 +299,10 @@ class LipschitzMLP:
         return LipschitzMLP(tuple(ws), tuple(bs), im, isd, om, osd, self.lipschitz_bound, dict(self.metadata),
                             self.bound_units)
 
-    def scaled_to_bound(self, bound: float, units: str | None = None) -> LipschitzMLP:
+    def scaled_to_bound(self, bound: float, units: str | None = None, *, all_inputs: bool = False) -> LipschitzMLP:
         """A copy whose certificate in ``units`` (default: its ``bound_units``) is ``<= bound``, stating
-        ``lipschitz_bound = bound`` in those units.
+        ``lipschitz_bound = bound`` in those units. ``all_inputs`` (physical units only): the certificate of
+        every input (Lemma 1's ``L_N``) rather than of the state inputs.
 
         If the certificate ``C`` exceeds ``bound``, each weight is multiplied by
         ``c = (bound / C)^(1/n)`` and bias ``i`` (0-based) by ``c^(i+1)``. Since ReLU is positively
@@ -294,8 +314,11 @@ class LipschitzMLP:
         if units is not None and units != self.bound_units:
             restated = LipschitzMLP(self.weights, self.biases, self.input_mean, self.input_std, self.output_mean,
                                     self.output_std, bound, dict(self.metadata), units)
-            return restated.scaled_to_bound(bound)
-        cert = self.certified_lipschitz()
+            return restated.scaled_to_bound(bound, all_inputs=all_inputs)
+        if all_inputs and self.bound_units != "physical":
+            raise ValueError("all_inputs is a physical certificate")
+        certificate = self.certified_lipschitz_physical if all_inputs else self.certified_lipschitz
+        cert = certificate()
         ws, bs = list(self.weights), list(self.biases)
         if cert > bound:
             n = len(ws)
@@ -304,7 +327,7 @@ class LipschitzMLP:
             bs = [b * c ** (i + 1) for i, b in enumerate(bs)]
             new = LipschitzMLP(tuple(ws), tuple(bs), self.input_mean, self.input_std, self.output_mean,
                                self.output_std, bound, dict(self.metadata), self.bound_units)
-            new_cert = new.certified_lipschitz()
+            new_cert = (new.certified_lipschitz_physical if all_inputs else new.certified_lipschitz)()
             if new_cert > bound:  # rounding: shrink the last layer only, by a relative ~1e-15
                 f = bound / new_cert * (1.0 - 1e-12)
                 ws[-1] = ws[-1] * f

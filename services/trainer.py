@@ -165,8 +165,8 @@ def active_network(active: dict):
     if not path or not os.path.isfile(path):
         raise ValueError(f"the active network {active.get('id')!r} has no file to warm-start from ({path!r})")
     net = load_network(path, expected_outputs=1)
-    flown = float(active.get("certified_phys", net.certified_lipschitz_physical()))
-    return net.scaled_to_bound(flown, "physical") if flown < net.certified_lipschitz_physical() * (1 - 1e-9) else net
+    flown = float(active.get("certified_state", net.certified_lipschitz_state()))
+    return net.scaled_to_bound(flown, "physical") if flown < net.certified_lipschitz_state() * (1 - 1e-9) else net
 
 
 def flown_gains(certificate: dict | None, config: TrainerConfig) -> tuple[float, float, float]:
@@ -184,7 +184,8 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     (``offer_fn(path, predicted) -> (ok, message)``). ``active``/``certificate``: the estimator's
     latest ``NetworkMsg.active`` / ``.certificate``."""
     from neso.certificate import flight_certificate
-    from neso.learning import DEFAULT_RECIPE, RECIPES, recipe_bound, recipe_of
+    from neso.features import feature_set
+    from neso.learning import DEFAULT_RECIPE, RECIPES, recipe_blocks, recipe_bound, recipe_of
     from neso.training import train_lipschitz_mlp
     from recordings.dataset import load_training_set
     from services import registry
@@ -217,15 +218,16 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
         bound = init.lipschitz_bound
     else:
         bound = recipe_bound(recipe, kp, kd, omega_o)
+    blocks, block_bounds = recipe_blocks(recipe, feature_set(ts.feature_set), bound)
     res = train_lipschitz_mlp(
         ts.z, ts.y_mps2, lipschitz_bound=bound, bound_units=recipe.bound_units, epochs=job.epochs, seed=job.seed,
-        init=init, scalers=recipe.tdr_scalers if init is not None else "fit",
+        init=init, scalers=recipe.tdr_scalers if init is not None else "fit", blocks=blocks, block_bounds=block_bounds,
         metadata={"vehicle": vehicle, "parent": parent, "feature_set": ts.feature_set, "recipe": recipe.name,
                   "label": label, "thrust_lag_s": repr(ts.thrust_lag.time_constant_s),
                   "thrust_delay_s": repr(ts.thrust_lag.delay_s)})
     t2 = time.perf_counter()
     result.timings_s["train"] = t2 - t1
-    cert = flight_certificate(res.network.certified_lipschitz_physical(), kp=kp, kd=kd, omega_o=omega_o).to_dict()
+    cert = flight_certificate(res.network.certified_lipschitz_state(), kp=kp, kd=kd, omega_o=omega_o).to_dict()
     t3 = time.perf_counter()
     result.timings_s["certify"] = t3 - t2
     if init is not None:
@@ -238,18 +240,27 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set, mass_kg=ts.mass_kg)
     result.timings_s["store"] = time.perf_counter() - t4
     if job.offer and offer_fn is not None:
-        change = result.predicted.get("change")
-        if not res.val_loss_vs_mean < 1.0:
-            result.offer = (False, f"not offered: its validation loss is {res.val_loss_vs_mean:.3f} × that of predicting "
-                                   "the mean (it learned nothing the observer does not already remove)")
-        elif isinstance(change, float) and change >= 0 and not job.force_offer:
-            result.offer = (False, f"not offered: predicted to fly worse ({change * 100:+.0f} % z RMSE on the recorded "
-                                   "flight); train with force_offer=true to offer it anyway")
+        withheld = withheld_because(res.val_loss_vs_mean, result.predicted.get("change"), job.force_offer)
+        if withheld:
+            result.offer = (False, withheld)
         else:
             t5 = time.perf_counter()
             result.offer = offer_fn(result.path, result.predicted)
             result.timings_s["offer"] = time.perf_counter() - t5
     return result
+
+
+def withheld_because(val_loss_vs_mean: float, change, force_offer: bool) -> str:
+    """Why a candidate is not offered (empty: offer it). One whose validation loss is not below that of
+    predicting the mean learned nothing and is never offered; one predicted to fly worse only with
+    ``force_offer``."""
+    if not val_loss_vs_mean < 1.0:
+        return (f"not offered: its validation loss is {val_loss_vs_mean:.3f} × that of predicting the mean (it learned "
+                "nothing the observer does not already remove); force_offer does not change that")
+    if isinstance(change, float) and change >= 0 and not force_offer:
+        return (f"not offered: predicted to fly worse ({change * 100:+.0f} % z RMSE on the recorded flight); train with "
+                "force_offer=true to offer it anyway")
+    return ""
 
 
 def predict_closed_loop(recordings, active_net, candidate_net, lag, kp: float, kd: float, omega_o: float) -> dict:

@@ -18,7 +18,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from neso.certificate import max_certified_lipschitz_best
+from neso.certificate import flight_budget
 from neso.control import ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
@@ -170,11 +170,13 @@ def label_quality(log: FlightLog, kind: str, lag: ThrustLag, *, late_s: float = 
 
 def train(z: np.ndarray, y: np.ndarray, *, bound: float, units: str, config: PaperConfig, name: str,
           fset_key: str, lag: ThrustLag, recipe_name: str, init=None, scalers: str = "init", source: str = ""):
+    from neso.learning import recipe_blocks
     from neso.training import train_lipschitz_mlp
 
+    blocks, block_bounds = recipe_blocks(RECIPES[recipe_name], feature_set(fset_key), bound)
     return train_lipschitz_mlp(
         z, y, lipschitz_bound=bound, bound_units=units, epochs=config.epochs, seed=config.seed, init=init,
-        scalers=scalers, metadata={"id": name, "training_data": source, "feature_set": fset_key, "recipe": recipe_name,
+        scalers=scalers, blocks=blocks, block_bounds=block_bounds, metadata={"id": name, "training_data": source, "feature_set": fset_key, "recipe": recipe_name,
                                    "thrust_lag_s": repr(lag.time_constant_s), "thrust_delay_s": repr(lag.delay_s)},
     )
 
@@ -385,13 +387,17 @@ def _bound_key(value: float) -> str:
 
 def _network_details(result, config: PaperConfig) -> dict:
     net = result.network
-    cert = max_certified_lipschitz_best(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
+    cert = flight_budget(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
     return {
         "bound": net.lipschitz_bound,
         "bound_units": net.bound_units,
         "certified_lipschitz_normalised": net.certified_lipschitz_normalised(),
         "certified_lipschitz_physical": net.certified_lipschitz_physical(),
-        "certificate_holds": net.certified_lipschitz_physical() < cert,
+        "certified_lipschitz_state": net.certified_lipschitz_state(),
+        "certificate_holds": net.certified_lipschitz_state() < cert,
+        "val_loss_vs_mean": result.val_loss_vs_mean,
+        "slopes": result.slopes,
+        "start": net.metadata.get("start", ""),
         "largest_certified_physical": cert,
         "feature_set": net.feature_set.key,
         "val_loss": result.val_loss,

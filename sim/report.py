@@ -37,11 +37,16 @@ def format_recipe_header(name: str, details: dict) -> str:
     base = nets.get("base_x1", {})
     tdr = nets.get("tdr", {})
     cert = lambda n: ("certified" if n.get("certificate_holds") else "NOT certified") if n else "–"  # noqa: E731
+    def learned(n: dict) -> str:
+        vs = n.get("val_loss_vs_mean")
+        return f", val loss {vs:.3f} × the mean's" if isinstance(vs, float) else ""
+
     return (f"=== recipe {name}: inputs {details.get('feature_set')}, bound {details.get('base_bound', float('nan')):.4g} "
-            f"({details.get('bound_units')}); base network {cert(base)} (physical L_N "
-            f"{base.get('certified_lipschitz_physical', float('nan')):.3g} vs largest certified "
-            f"{base.get('largest_certified_physical', float('nan')):.3g}), TDR network {cert(tdr)} "
-            f"({tdr.get('certified_lipschitz_physical', float('nan')):.3g}) ===")
+            f"({details.get('bound_units')}); base network {cert(base)} (L_N in its state inputs "
+            f"{base.get('certified_lipschitz_state', float('nan')):.3g}, all inputs "
+            f"{base.get('certified_lipschitz_physical', float('nan')):.3g}, vs largest certified "
+            f"{base.get('largest_certified_physical', float('nan')):.3g}{learned(base)}), TDR network {cert(tdr)} "
+            f"({tdr.get('certified_lipschitz_state', float('nan')):.3g}{learned(tdr)}) ===")
 
 
 def format_labels(details: dict) -> str:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from neso.certificate.core import METHODS, CertificateInputs, CertificateResult, Method
 from neso.certificate.lmi import LMI_STRUCTURE, _lmi_frontier, certify_lmi
 from neso.certificate.literal import certify_literal
+from neso.certificate.roles import max_certified_state_lipschitz_verified
 from neso.certificate.tight import certify_tight
 
 # --------------------------------------------------------------------------------------------- public API
@@ -85,12 +86,13 @@ def best_certificate(inputs: CertificateInputs) -> CertificateResult:
 
 @dataclass(frozen=True)
 class FlightCertificate:
-    """The verdict for what flies: a network's certified physical Lipschitz constant against the
-    largest the tightest verified certificate allows for the z gains and observer bandwidth
-    (:func:`max_certified_lipschitz_best`).
+    """The verdict for what flies: a network's certified physical Lipschitz constant in its state inputs
+    (:meth:`neso.network.LipschitzMLP.certified_lipschitz_state`) against the largest the role certificate
+    verified for the z gains and observer bandwidth (:func:`flight_budget`; :mod:`neso.certificate.roles`:
+    sharper than Lemma 1, whose LMI gives :func:`max_certified_lipschitz_best`).
 
-    ``lipschitz_phys``, ``max_certified``: (m/s²) per unit z. ``kp`` 1/s², ``kd`` 1/s, ``omega_o`` rad/s.
-    ``margin``: ``max_certified − lipschitz_phys`` (> 0 iff it holds).
+    ``lipschitz_phys`` (in the state inputs), ``max_certified``: (m/s²) per unit z. ``kp`` 1/s², ``kd`` 1/s,
+    ``omega_o`` rad/s. ``margin``: ``max_certified − lipschitz_phys`` (> 0 iff it holds).
     """
 
     holds: bool
@@ -107,17 +109,26 @@ class FlightCertificate:
     def text(self) -> str:
         verdict = "holds" if self.holds else "FAILS"
         rel = self.margin / self.max_certified * 100 if self.max_certified > 0 else float("-inf")
-        return (f"certificate {verdict}: L_N {self.lipschitz_phys:.4g} (m/s²)/unit z physical vs {self.max_certified:.4g} "
-                f"certified for kp {self.kp:g}, kd {self.kd:g}, ω_o {self.omega_o:g} (margin {self.margin:+.4g}, {rel:+.0f} %)")
+        return (f"certificate {verdict}: L_N {self.lipschitz_phys:.4g} (m/s²)/unit z physical (state inputs) vs "
+                f"{self.max_certified:.4g} certified for kp {self.kp:g}, kd {self.kd:g}, ω_o {self.omega_o:g} "
+                f"(margin {self.margin:+.4g}, {rel:+.0f} %)")
 
     def to_dict(self) -> dict:
         return {"holds": self.holds, "lipschitz_phys": self.lipschitz_phys, "max_certified": self.max_certified,
                 "margin": self.margin, "kp": self.kp, "kd": self.kd, "omega_o": self.omega_o, "text": self.text()}
 
 
+def flight_budget(kp: float, kd: float, omega_o: float) -> float:
+    """The largest physical Lipschitz constant in the state inputs, (m/s²) per unit z, that flies certified
+    with z gains ``kp`` (1/s²), ``kd`` (1/s) and ``omega_o`` (rad/s): the role certificate's verified frontier.
+    What the services check and the trainer spends. Cached per gains."""
+    return max_certified_state_lipschitz_verified(float(kp), float(kd), float(omega_o))
+
+
 def flight_certificate(lipschitz_phys: float, *, kp: float, kd: float, omega_o: float) -> FlightCertificate:
-    """The certificate for a network of physical Lipschitz constant ``lipschitz_phys`` flown with these
-    z gains (the planar axes carry no network: ``L_N = 0`` there, which every positive gain certifies)."""
-    lmax = max_certified_lipschitz_best(float(kp), float(kd), float(omega_o))
+    """The certificate for a network whose physical Lipschitz constant in its state inputs is ``lipschitz_phys``,
+    flown with these z gains (the planar axes carry no network: ``L_N = 0`` there, which every positive gain
+    certifies)."""
+    lmax = flight_budget(kp, kd, omega_o)
     return FlightCertificate(bool(lipschitz_phys < lmax), float(lipschitz_phys), float(lmax), float(kp), float(kd),
                              float(omega_o))

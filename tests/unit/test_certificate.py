@@ -408,7 +408,8 @@ def _parse(argv):
 @pytest.mark.parametrize(
     "lip,method,expected",
     [(0.01, "literal", 0), (0.05, "literal", 1), (0.05, "tight", 0), (0.05, "both", 0), (5.0, "both", 1),
-     (1.5, "both", 1), (1.5, "lmi", 0), (1.5, "all", 0), (5.0, "lmi", 1), (5.0, "all", 1)],
+     (1.5, "both", 1), (1.5, "lmi", 0), (1.5, "all", 0), (5.0, "lmi", 1), (5.0, "roles", 0), (5.0, "all", 0),
+     (10.0, "roles", 1), (10.0, "all", 1)],
 )
 def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     certify, args = _parse(["--kp", "10", "--kd", "6", "--omega-o", "20", "--lipschitz", str(lip),
@@ -420,11 +421,11 @@ def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     assert out["holds"] == (rc == 0) and REQUIRED <= out["methods"][out["method"]].keys()
     if method in ("both", "all"):
         methods = out["methods"]
-        assert set(methods) == ({"literal", "tight"} if method == "both" else {"literal", "tight", "lmi"})
-        assert out["holds"] == methods["tight" if method == "both" else "lmi"]["holds"]
-    if method == "all":
-        assert out["method"] == "lmi" and "P" not in out["methods"]["lmi"]  # compact: no matrices
-        assert out["max_certified_lipschitz"] == out["methods"]["lmi"]["max_certified_lipschitz"]
+        assert set(methods) == ({"literal", "tight"} if method == "both" else {"literal", "tight", "lmi", "roles"})
+        assert out["holds"] == methods["tight" if method == "both" else "roles"]["holds"]
+    if method == "all":  # the verdict is the role certificate's, the one the services fly by
+        assert out["method"] == "roles" and "P" not in out["methods"]["lmi"]  # compact: no matrices
+        assert out["max_certified_lipschitz"] == out["methods"]["roles"]["max_certified_lipschitz"]
 
 
 def test_cli_json_is_compact_and_verbose_adds_the_matrices(capsys):
@@ -451,7 +452,8 @@ def test_cli_text_report(capsys):
     assert certify.run(args) == 0
     out = capsys.readouterr().out
     assert "[literal] FAILS" in out and "[tight] HOLDS" in out and "max certified L_N" in out
-    assert "[lmi] HOLDS" in out and "verdict (lmi): HOLDS" in out and "re-verified in numpy" in out
+    assert "[lmi] HOLDS" in out and "[roles] HOLDS" in out and "verdict (roles): HOLDS" in out
+    assert "re-verified in numpy" in out and "L_N in the state inputs 0.05" in out
 
 
 def test_cli_as_subprocess():

@@ -105,13 +105,13 @@ def test_the_certificate_shown_is_the_estimators_verdict_not_the_pages():
 
     v = VehicleModel("uav1")
     assert v.certificate() is None and math.isnan(v.lipschitz()[0])  # nothing reported yet: nothing claimed
-    verdict = flight_certificate(3.2, kp=10.0, kd=6.0, omega_o=OMEGA_O_RPS)
-    v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a", "lipschitz_norm": 0.5, "lipschitz_phys": 3.2},
+    verdict = flight_certificate(9.2, kp=10.0, kd=6.0, omega_o=OMEGA_O_RPS)  # above the 7.40 the estimator allows
+    v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a", "lipschitz_norm": 0.5, "lipschitz_phys": 9.2},
                                    candidate={}, previous={}, shadow_error_rms_mps2=-1.0,
                                    certificate=verdict.to_dict()), 0.0)
     cert = v.certificate()
     assert not cert.holds and cert.margin == pytest.approx(verdict.margin) and "FAILS" in cert.text
-    assert cert.max_lipschitz_phys == pytest.approx(verdict.max_certified) and v.lipschitz() == (3.2, 0.5)
+    assert cert.max_lipschitz_phys == pytest.approx(verdict.max_certified) and v.lipschitz() == (9.2, 0.5)
 
 
 def test_bad_payloads_are_counted_never_fatal_and_routed_by_vehicle():

@@ -14,8 +14,9 @@ from neso.netfile import load_network, network_to_bytes, save_network
 from neso.network import LipschitzMLP
 from runtime.schema import ReferenceMsg, StateMsg
 from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
-from tests.helpers import (BASE, REPO, candidate, fixed_clock, measurement, nan_weights, random_network, with_header,
-                           with_meta)
+from neso.certificate import flight_budget
+from tests.helpers import (BASE, REPO, candidate, fixed_clock, measurement, nan_weights, random_network, widened,
+                           with_header, with_meta)
 
 
 
@@ -76,7 +77,8 @@ def test_bad_candidates_are_refused_with_the_reason(make, reason):
 
 def test_a_certificate_over_its_bound_is_refused():
     net = candidate()
-    over = LipschitzMLP(tuple(w * 1.1 for w in net.weights), net.biases, net.input_mean, net.input_std,
+    f = (1.1 * net.lipschitz_bound / net.certified_lipschitz_state()) ** (1 / net.n_layers)  # 10 % over its bound
+    over = LipschitzMLP(tuple(w * f for w in net.weights), net.biases, net.input_mean, net.input_std,
                         net.output_mean, net.output_std, 1e9, net.metadata, net.bound_units)
     data = with_header(network_to_bytes(over), lipschitz_bound=repr(net.lipschitz_bound))
     v = gate(data, active=load_network(BASE), vehicle="uav1")
@@ -176,16 +178,20 @@ def test_an_l_n_typed_as_shown_finds_the_network_trained_for_it_and_never_flies_
 
 
 # -- the certificate, checked where the change is applied -------------------------------------
-def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overridden():
+def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overridden(tmp_path):
     from runtime.params import ParamSet
 
     from flight.estimator import estimator_params
 
     net, source = load_flown_network(BASE)
-    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, str(REPO / "networks")),
+    # the networks trained here stay well inside their bounds: one trained for an L_N above the certified
+    wide = widened(net, 1.4 * flight_budget(10.0, 6.0, 15.0))
+    save_network(tmp_path / "base.safetensors", net)
+    save_network(tmp_path / "base-wide.safetensors", wide)
+    core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, str(tmp_path)),
                          clock=fixed_clock)
     assert core.certificate().holds, core.certificate().text()
-    double = load_network(REPO / "networks" / "base-x2.safetensors").lipschitz_bound_physical()
+    double = wide.lipschitz_bound_physical()
     cert = core.certificate_of(core.choice.network_for(double)[0])
     assert not cert.holds and cert.margin < 0
     params = ParamSet(estimator_params(core.config, net.lipschitz_bound_physical()), check=core.check)
@@ -214,14 +220,18 @@ def test_the_certificate_follows_the_controller_gains():
 def test_an_uncertified_startup_network_is_not_flown_unless_allowed():
     from flight.estimator import startup_network
 
-    paper, _ = load_flown_network(str(REPO / "networks" / "paper" / "base-L1.safetensors"))
     gains = (10.0, 6.0)
-    net, (level, text) = startup_network(EstimatorConfig(network="paper"), paper, gains)
-    assert net is None and level == "error" and "NOT flown" in text and "FAILS" in text
-    net, (level, text) = startup_network(EstimatorConfig(network="paper", allow_uncertified=True), paper, gains)
-    assert net is paper and level == "warning" and "OUTSIDE" in text
     good, _ = load_flown_network(BASE)
+    wide = widened(good, 1.4 * flight_budget(*gains, 15.0))
+    net, (level, text) = startup_network(EstimatorConfig(network="wide"), wide, gains)
+    assert net is None and level == "error" and "NOT flown" in text and "FAILS" in text
+    net, (level, text) = startup_network(EstimatorConfig(network="wide", allow_uncertified=True), wide, gains)
+    assert net is wide and level == "warning" and "OUTSIDE" in text
     assert startup_network(EstimatorConfig(), good, gains)[0] is good
+    # the paper's L_N = 1 network: 3.2 (m/s²)/unit z in all its inputs (Lemma 1's LMI allows 1.66) but 2.8 in its
+    # state inputs, which is all the role certificate counts in the loop gain: it flies certified
+    paper, _ = load_flown_network(str(REPO / "networks" / "paper" / "base-L1.safetensors"))
+    assert paper.certified_lipschitz_physical() > 1.66 and startup_network(EstimatorConfig(), paper, gains)[0] is paper
 
 
 def test_promoting_an_uncertified_or_predicted_worse_candidate_needs_force(core, tmp_path):

@@ -9,7 +9,7 @@ import pytest
 
 from flight.hotswap import gate
 from neso.netfile import load_network
-from neso.certificate import max_certified_lipschitz_best
+from neso.certificate import flight_budget
 from neso.learning import RECIPES
 from neso.types import OMEGA_O_RPS
 from services import registry
@@ -42,9 +42,12 @@ def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_
     assert net.feature_set is base.feature_set and net.layer_sizes == base.layer_sizes
     assert net.metadata["label"] == recipe.tdr_label == "applied" and net.metadata["recipe"] == recipe.name
     assert not np.array_equal(net.input_std, base.input_std), "z-scores refitted on the new data (recipe 'fit')"
-    l_max = max_certified_lipschitz_best(10.0, 6.0, 15.0)
+    l_max = flight_budget(10.0, 6.0, 15.0)
     assert net.bound_units == "physical" and net.lipschitz_bound == pytest.approx(recipe.certified_fraction * l_max)
-    assert net.certified_lipschitz_physical() <= net.lipschitz_bound * (1 + 1e-9)
+    assert net.certified_lipschitz_state() <= net.lipschitz_bound * (1 + 1e-9)
+    exo = tuple(i for i in range(net.n_inputs) if i not in net.state_columns)
+    assert net.certified_lipschitz_columns(exo) <= recipe.exogenous_fraction * net.lipschitz_bound * (1 + 1e-9)
+    assert "val loss" in result.summary() and "slopes ∂f_N/∂input" in result.summary()
     assert net.metadata["parent"] == "base" and net.metadata["vehicle"] == "uav1"
     assert json.loads(net.metadata["recordings"]) == [str(EXAMPLE)]
     assert gate(Path(result.path).read_bytes(), active=base, vehicle="uav1").passed
@@ -98,3 +101,15 @@ def test_jobs_that_cannot_be_done_are_refused_with_the_reason(rrd, tmp_path):
         train_job(job, config, "uav1", None)
     with pytest.raises(ValueError, match="vehicle 'uav1'"):
         train_job(job, config, "uav2", ACTIVE)
+
+
+def test_a_candidate_that_learned_nothing_is_never_offered_even_by_force():
+    from services.trainer import withheld_because
+
+    assert withheld_because(0.4, -0.1, False) == ""
+    assert "predicted to fly worse" in withheld_because(0.4, 0.05, False)
+    assert withheld_because(0.4, 0.05, True) == ""
+    for vs_mean in (1.0, 1.7, float("nan")):
+        for force in (False, True):
+            why = withheld_because(vs_mean, -0.2, force)
+            assert why.startswith("not offered") and "predicting the mean" in why
