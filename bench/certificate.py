@@ -1,6 +1,7 @@
-"""Bench rows: the stability certificates side by side — max certified ``L_N`` of literal, tight and LMI (block and
-full ``P``) over a grid of gains with the time each takes, what :func:`neso.certificate.best_certificate` costs cold
-(fresh process), for new gains and cached, and how tight each bound is against a simulated worst case.
+"""Bench rows: the stability certificates side by side — max certified ``L_N`` of literal, tight, LMI (block and
+full ``P``) and the role certificate (in the state inputs) over a grid of gains with the time each takes, what
+:func:`neso.certificate.best_certificate` and :func:`neso.certificate.flight_budget` (the one the services use) cost
+cold (fresh process), for new gains and cached, and how tight each bound is against a simulated worst case.
 
 ``python -m bench.certificate`` prints only these tables (~1 min on 2 busy cores); ``make bench`` includes them.
 ``L_N`` in (m/s²) per unit z (physical); bounds on ‖E‖ in mixed SI (m, m/s, m, m/s, m/s²).
@@ -16,7 +17,7 @@ import time
 import numpy as np
 
 GRID_COLUMNS = ("kp", "kd", "ω_o", "literal", "tight", "LMI block", "LMI full", "full/tight",
-                "tight ms", "LMI full ms (SDPs)")
+                "tight ms", "LMI full ms (SDPs)", "roles", "roles/LMI", "roles ms")
 KP, KD, OMEGA_O = (4.0, 10.0, 20.0), (3.0, 6.0, 10.0), (10.0, 15.0, 20.0, 30.0)
 FLOWN = (10.0, 6.0, 15.0)  # controller z gains and estimator ω_o as the services start
 
@@ -26,7 +27,9 @@ def grid_rows(kps=KP, kds=KD, omegas=OMEGA_O) -> list[tuple[str, ...]]:
     for those gains; the LMI's cvxpy programs already compiled, as in any process after its first call)."""
     from neso import certificate as c
 
-    c._lmi_programs("full"), c._lmi_programs("block")  # compile once, outside the timings
+    from neso.certificate import roles
+
+    c._lmi_programs("full"), c._lmi_programs("block"), roles._programs()  # compile once, outside the timings
     rows = []
     for kp, kd, w in itertools.product(kps, kds, omegas):
         base = c.CertificateInputs(kp=kp, kd=kd, omega_o=w, lipschitz=0.0)
@@ -37,10 +40,16 @@ def grid_rows(kps=KP, kds=KD, omegas=OMEGA_O) -> list[tuple[str, ...]]:
         t_tight = time.perf_counter() - t0
         block = c._lmi_frontier(kp, kd, w, "corrected", "block")
         full = c._lmi_frontier(kp, kd, w, "corrected", "full")
+        roles._frontier.cache_clear()
+        roles.max_certified_state_lipschitz.cache_clear()
+        t0 = time.perf_counter()
+        role = roles.max_certified_state_lipschitz_verified(kp, kd, w)
+        t_roles = time.perf_counter() - t0
         flown = " ← flown" if (kp, kd, w) == FLOWN else ""
         rows.append((f"{kp:g}", f"{kd:g}", f"{w:g}{flown}", f"{lit:.4g}", f"{tight:.4g}", f"{block.lmax:.4g}",
                      f"{full.lmax:.4g}", f"{full.lmax / tight:.2f}", f"{t_tight * 1e3:.0f}",
-                     f"{full.solve_time_s * 1e3:.0f} ({full.solves})"))
+                     f"{full.solve_time_s * 1e3:.0f} ({full.solves})", f"{role:.4g}", f"{role / full.lmax:.2f}",
+                     f"{t_roles * 1e3:.0f}"))
     return rows
 
 
@@ -58,7 +67,13 @@ t3 = time.perf_counter()
 for _ in range(1000):
     max_certified_lipschitz_best(10.0, 6.0, 15.0)
 t4 = time.perf_counter()
-print(json.dumps(dict(imp=t1 - t0, cold=t2 - t1, new=t3 - t2, cached=(t4 - t3) / 1000)))
+from neso.certificate import flight_budget
+flight_budget(10.0, 6.0, 15.0)
+t5 = time.perf_counter()
+flight_budget(12.0, 6.0, 15.0)
+t6 = time.perf_counter()
+print(json.dumps(dict(imp=t1 - t0, cold=t2 - t1, new=t3 - t2, cached=(t4 - t3) / 1000, roles_cold=t5 - t4,
+                      roles_new=t6 - t5)))
 """
 
 
@@ -70,7 +85,10 @@ def timing_rows() -> list[tuple[str, str]]:
             ("first call in a fresh process (kp 10, kd 6, ω_o 15): cvxpy import + compile + bisection",
              f"{t['cold']:.3f}"),
             ("new gains, same process (kp 12)", f"{t['new']:.3f}"),
-            ("cached gains", f"{t['cached']:.1e}")]
+            ("cached gains", f"{t['cached']:.1e}"),
+            ("flight_budget (role certificate, what the services use), first call: compile + H∞ + bisection",
+             f"{t['roles_cold']:.3f}"),
+            ("flight_budget, new gains (kp 12)", f"{t['roles_new']:.3f}")]
 
 
 BOUND_COLUMNS = ("eventual bound on ‖E‖ at the flown gains", "L_N = ½ tight max", "L_N = ½ LMI max")

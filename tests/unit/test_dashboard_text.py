@@ -72,3 +72,11 @@ def test_the_network_panel_shows_the_candidate_and_its_prediction():
     failing = dataclasses.replace(msg, candidate=dict(candidate, certificate={"holds": False}))
     v.ingest("network", failing, 100.3)
     assert "certificate FAILS" in network_markdown(v)
+    assert "learned: val loss vs mean not recorded" in network_markdown(v)  # an older file says nothing of it
+    learned = dataclasses.replace(msg, candidate=dict(candidate, val_loss_vs_mean=0.41,
+                                                      slopes={"pos_z_m": -2.41, "pitch_rad": -0.22}),
+                                  shadow_error_rms_mps2=-1.0)
+    v.ingest("network", learned, 100.4)
+    text = network_markdown(v)
+    assert "learned: val loss 0.410 × the mean's · slopes pos_z_m -2.41, pitch_rad -0.22" in text
+    assert "shadow error none yet" in text  # no shadow sample yet: no made-up number

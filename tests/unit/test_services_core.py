@@ -160,6 +160,26 @@ def test_controller_gain_change_keeps_the_force_continuous():
     assert abs(sp1.thrust_n - sp0.thrust_n) <= core.config.control.force_step_limit_n + 1e-9
 
 
+def test_the_controller_flies_the_vehicles_mass_and_reports_it_as_a_parameter():
+    from dataclasses import replace
+
+    from flight.controller import CONTROLLER_PARAMS, gain_values, with_mass
+
+    heavy = ControllerConfig(mass_kg=2.65)
+    assert with_mass(heavy).control.vehicle.mass_kg == 2.65 and gain_values(with_mass(heavy).control)["mass_kg"] == 2.65
+    assert "mass_kg" in {p.name for p in CONTROLLER_PARAMS}
+    thrust = {}
+    for mass in (1.0, 2.65):
+        core = ControllerCore(replace(ControllerConfig(), mass_kg=mass), clock=fixed_clock)
+        core.on_state(state(0, z=1.0), 0.0)
+        (sp, _), = core.on_estimate(estimate(0, fz=0.0), 0.0)
+        thrust[mass] = sp.thrust_n
+    assert thrust[2.65] == pytest.approx(2.65 * thrust[1.0], rel=1e-9)  # newtons for the vehicle flown
+    core = ControllerCore(ControllerConfig(), clock=fixed_clock)
+    core.apply_gains({**gain_values(core.config.control), "mass_kg": 1.4})
+    assert core.config.mass_kg == 1.4 and core.config.control.vehicle.mass_kg == 1.4
+
+
 def test_mission_commands_take_effect_at_the_next_sample():
     core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
     core.on_state(state(0), 0.0)
