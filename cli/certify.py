@@ -31,7 +31,10 @@ import argparse
 import json
 import math
 
-_DEFAULTS = dict(L1=5.0, Lu=20.0, ref_vel_max=0.5, ref_acc_max=1.0)
+def _constants() -> dict:
+    from neso.certificate.core import L1_MPS3, LU_PER_S, REF_ACC_MAX_MPS2, REF_VEL_MAX_MPS
+
+    return dict(L1=L1_MPS3, Lu=LU_PER_S, ref_vel_max=REF_VEL_MAX_MPS, ref_acc_max=REF_ACC_MAX_MPS2)
 
 
 def _flight_defaults() -> tuple[float, float, float, str]:
@@ -69,10 +72,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                       "grid of gains (--kp/--kd/--omega-o lists with commas)")
     what.add_argument("--network", metavar="FILE|default",
                       help="certify this network file's exact physical L_N ('default': the network neso up flies)")
-    p.add_argument("--L1", type=float, default=_DEFAULTS["L1"], help="bound on |df/dt|, m/s^3 (default %(default)s)")
-    p.add_argument("--Lu", type=float, default=_DEFAULTS["Lu"], help="bound on |du/dt|, z-units/s (default %(default)s)")
-    p.add_argument("--ref-vel-max", type=float, default=_DEFAULTS["ref_vel_max"], help="|q*'| bound, m/s (default %(default)s)")
-    p.add_argument("--ref-acc-max", type=float, default=_DEFAULTS["ref_acc_max"], help="|q*''| bound, m/s^2 (default %(default)s)")
+    constants = _constants()
+    p.add_argument("--L1", type=float, default=constants["L1"], help="bound on |df/dt|, m/s^3 (default %(default)s)")
+    p.add_argument("--Lu", type=float, default=constants["Lu"], help="bound on |du/dt|, z-units/s (default %(default)s)")
+    p.add_argument("--ref-vel-max", type=float, default=constants["ref_vel_max"], help="|q*'| bound, m/s (default %(default)s)")
+    p.add_argument("--ref-acc-max", type=float, default=constants["ref_acc_max"], help="|q*''| bound, m/s^2 (default %(default)s)")
     p.add_argument("--n-axes", type=int, default=1, help="identical axes (does not change the result)")
     p.add_argument("--lambda-c-rule", choices=("corrected", "paper"), default="corrected",
                    help="lambda_c: 'corrected' sqrt(kp^2+(kd+1)^2) covers the |de/dt| term the paper's Lemma 1 "

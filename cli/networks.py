@@ -93,7 +93,7 @@ def run(args) -> int:
     if not any(r["where"] == "registry" for r in rows):
         print(f"(registry {args.registry}: empty — `neso train` stores there)")
     if any(r.get("flown_by_default") for r in rows):
-        print("* flown by the estimator by default (--network); certified: the physical L_N ((m/s²)/unit z) the network provably meets; small-gain: the tight certificate at the trainer's "
-              "z gains for the network's certified physical L_N; vs mean: validation loss over that of predicting "
+        print("* flown by the estimator by default (--network); certified: the physical L_N ((m/s²)/unit z) the network provably meets in all its inputs; small-gain: the role certificate at the trainer's "
+              "z gains for the network's certified slope in its state inputs; vs mean: validation loss over that of predicting "
               "the mean (< 1: it learned something); slopes: mean physical ∂f_N/∂input over its training inputs")
     return 0

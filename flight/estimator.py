@@ -234,6 +234,11 @@ class EstimatorCore:
             net, _ = self.choice.network_for(values["lipschitz_bound"])
         if net is not None and values["pathway"] in PRIOR_PATHWAYS:
             cert = self.certificate_of(net)
+            if net is not current:  # a new L_N: the bound asked for must be certified, not only the network met
+                kp, kd = self.gains_z
+                asked = flight_certificate(max(values["lipschitz_bound"], net.certified_lipschitz_state()), kp=kp,
+                                           kd=kd, omega_o=self.config.omega_o_rps)
+                cert = asked if not asked.holds else cert
             if not cert.holds:
                 return Refusal(cert.text(), overridable=True)
         return None

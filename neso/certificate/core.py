@@ -20,6 +20,13 @@ _REL_TOL = 1e-9
 # --------------------------------------------------------------------------------------------- inputs
 
 
+#: The non-gain constants' defaults (they move the ultimate bound, never the verdict; CertificateInputs says why).
+L1_MPS3 = 5.0
+LU_PER_S = 20.0
+REF_VEL_MAX_MPS = 0.5
+REF_ACC_MAX_MPS2 = 1.0
+
+
 @dataclass(frozen=True)
 class CertificateInputs:
     """Everything the certificate depends on.
@@ -46,10 +53,10 @@ class CertificateInputs:
     omega_o: float
     lipschitz: float
     n_axes: int = 1
-    L_1: float = 5.0
-    L_u: float = 20.0
-    ref_vel_max: float = 0.5
-    ref_acc_max: float = 1.0
+    L_1: float = L1_MPS3
+    L_u: float = LU_PER_S
+    ref_vel_max: float = REF_VEL_MAX_MPS
+    ref_acc_max: float = REF_ACC_MAX_MPS2
     lambda_c_rule: Literal["corrected", "paper"] = "corrected"
 
     def __post_init__(self) -> None:

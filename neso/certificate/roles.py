@@ -40,7 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from neso.certificate.core import composite_matrices, negative_margin
+from neso.certificate.core import (L1_MPS3, LU_PER_S, REF_ACC_MAX_MPS2, REF_VEL_MAX_MPS, composite_matrices,
+                                   negative_margin)
 
 _EPS = np.finfo(float).eps
 _MARGIN = 1e-9  # demanded Jacobi-scaled margin of the matrix inequalities, after rounding slack
@@ -104,10 +105,10 @@ class RoleInputs:
     omega_o: float
     lipschitz_state: float
     lipschitz_exo: float = 0.0
-    L_1: float = 5.0
-    exo_rate_max: float = 20.0
-    ref_vel_max: float = 0.5
-    ref_acc_max: float = 1.0
+    L_1: float = L1_MPS3
+    exo_rate_max: float = LU_PER_S
+    ref_vel_max: float = REF_VEL_MAX_MPS
+    ref_acc_max: float = REF_ACC_MAX_MPS2
 
     def __post_init__(self) -> None:
         for name in ("kp", "kd", "omega_o"):

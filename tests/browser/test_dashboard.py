@@ -208,7 +208,7 @@ def test_the_page_opens_on_the_estimators_certificate_holding(flight):
     page = flight.page
     wait_status(page, "certificate", r"^cert HOLDS$")
     tab(page, "Flight")
-    wait_text(page, r"certificate holds: L_N \d+\.\d+ \(m/s²\)/unit z physical vs \d+\.\d+ certified for kp 10, kd 6")
+    wait_text(page, r"certificate holds: L_N \d+\.\d+ \(m/s²\)/unit z physical \(state inputs\) vs \d+\.\d+ certified for kp 10, kd 6")
 
 
 def test_lipschitz_bound_certified_is_applied_uncertifiable_refused_unless_overridden(flight):

@@ -67,7 +67,8 @@ def _files(tmp):
     over = candidate()
     from neso.network import LipschitzMLP
 
-    over = LipschitzMLP(tuple(w * 1.1 for w in over.weights), over.biases, over.input_mean, over.input_std,
+    f = (1.1 * over.lipschitz_bound / over.certified_lipschitz_state()) ** (1 / over.n_layers)  # 10 % over its bound
+    over = LipschitzMLP(tuple(w * f for w in over.weights), over.biases, over.input_mean, over.input_std,
                         over.output_mean, over.output_std, 1e9, over.metadata, over.bound_units)
     bad = {
         "truncated": (good[: len(good) // 2], "truncated"),

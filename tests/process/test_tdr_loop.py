@@ -35,7 +35,8 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     assert len(sidecars) == 1
     info = json.loads(sidecars[0].read_text())
     assert info["id"] == report.network_id and info["parent"] == "base" and info["label"] == "applied"
-    assert info["recordings"] == [report.recording] and info["certified_phys"] <= info["lipschitz_phys"] * (1 + 1e-6)
+    assert info["recordings"] == [report.recording] and info["certificate"]["lipschitz_phys"] <= info["lipschitz_phys"] * (1 + 1e-6)
+    assert isinstance(info["val_loss_vs_mean"], float) and info["val_loss_vs_mean"] < 1.0 and info["slopes"]
     assert info["val_loss"] >= 0 and info["certificate"]["holds"] and info["certificate"]["margin"] > 0
     assert info["predicted"] == report.predicted and report.predicted["seconds"] > 25
     assert report.cycles_before_samples > 1000 and report.cycles_after_samples > 1000, "5 cycles each (1500 samples)"
