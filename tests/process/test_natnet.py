@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import queue
+import socket
 import math
 import subprocess
 import sys
@@ -20,7 +21,8 @@ import pytest
 from flight.source import MocapConfig, MocapSource
 from sim import natnet
 from sim.natnet_server import NatNetServer, NatNetServerConfig, free_udp_port
-from tests.busutil import REPO
+from runtime.schema import Keys
+from tests.busutil import REPO, free_port, hub, neso, stop
 
 READER = """
 import json, sys, motioncapture
@@ -218,3 +220,75 @@ def test_the_independent_natnet_client_reads_the_same_stream(server):
         assert b.suffix.timestamp - a.suffix.timestamp == pytest.approx(
             (b.prefix.frame_number - a.prefix.frame_number) / 100.0, abs=1e-3)
         assert b.suffix.stamp_camera_mid_exposure > a.suffix.stamp_camera_mid_exposure
+
+
+def test_malformed_commands_are_counted_and_the_server_still_answers(server):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(2.0)
+        for junk in (b"\x00", b"\x00\x00\xff\x00abc", b""):
+            s.sendto(junk, ("127.0.0.1", server.command_port))
+        s.sendto(natnet.packet(natnet.NAT_REQUEST_MODELDEF), ("127.0.0.1", server.command_port))
+        assert natnet.parse_rigid_body_names(natnet.split(s.recv(65536))[1]) == {1: "uav1", 7: "uav2"}
+        s.sendto(natnet.packet(42), ("127.0.0.1", server.command_port))
+        assert natnet.split(s.recv(65536))[0] == natnet.NAT_UNRECOGNIZED_REQUEST
+    assert server.malformed == 3
+
+
+def source(server: NatNetServer, endpoint: str, rigid_body: str) -> subprocess.Popen:
+    return neso("run", "source", "--backend", "mocap", "--mocap-type", "optitrack", "--mocap-port",
+                str(server.command_port), "--mocap-interface", "127.0.0.1", "--rigid-body", rigid_body,
+                "--connect", endpoint)
+
+
+def test_a_wrong_rigid_body_name_is_refused_naming_the_streamed_ones(server):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with hub(endpoint):
+        proc = source(server, endpoint, "uav9")
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 2, out
+    refusal = [line for line in out.splitlines() if "uav9" in line and "streams" in line]
+    assert refusal == [f"source: rigid body 'uav9' is not streamed by the NatNet server at 127.0.0.1:"
+                       f"{server.command_port}; it streams ['uav1', 'uav2'] (--rigid-body, or Motive's Assets pane: "
+                       "the rigid body's name and Streaming on)"], out
+    assert "Traceback" not in out
+
+
+def test_no_server_is_one_clear_line():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with hub(endpoint):
+        proc = neso("run", "source", "--backend", "mocap", "--mocap-type", "optitrack", "--mocap-port",
+                    str(free_udp_port()), "--connect", endpoint)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode != 0 and "no NatNet server answered at 127.0.0.1:" in out and "Traceback" not in out, out
+
+
+def test_the_source_flags_a_stopped_stream_and_a_lost_body_and_goes_on_when_they_are_back(server):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    tracked, untracked = [[natnet.BodyPose(1, (0, 1, 0), (0, 0, 0, 1))]], [[natnet.BodyPose(1, (0, 1, 0), (0, 0, 0, 1),
+                                                                                            tracked=False)]]
+    with hub(endpoint) as s:
+        states: list[float] = []
+        sub = s.declare_subscriber(Keys("uav1").topic("state"), lambda sample: states.append(time.monotonic()))
+        proc = source(server, endpoint, "uav1")
+        try:
+            for frames, seconds in ((tracked, 2.0), ([], 1.0), (tracked, 1.5), (untracked, 1.0), (tracked, 1.5)):
+                if frames:
+                    streamer = Streamer(server, frames)
+                    time.sleep(seconds)
+                    streamer.close()
+                else:
+                    time.sleep(seconds)  # the stream stops
+        finally:
+            out = stop(proc)
+            sub.undeclare()
+    assert proc.returncode == 0, out
+    events = [line.split("] ", 1)[1] for line in out.splitlines() if "warning:" in line or "info:" in line]
+    stopped = [e for e in events if "stopped: no frame for" in e]
+    back = [e for e in events if "back after" in e]
+    lost = [e for e in events if "rigid body 'uav1' lost" in e]
+    again = [e for e in events if "tracked again after" in e]
+    assert len(stopped) == 1 and len(back) == 1 and len(lost) == 1 and len(again) == 1, events
+    assert 0.9 < float(back[0].split("back after ")[1].split(" s")[0]) < 1.3, back
+    assert 0.9 < float(again[0].split("tracked again after ")[1].split(" s")[0]) < 1.2, again
+    gaps = np.diff(states)
+    assert len(states) > 200 and np.sum(gaps > 0.5) == 2, "states stop twice (stream stopped, body lost), then go on"
