@@ -56,7 +56,7 @@ class MocapConfig:
                             help="optitrack: this machine's address on the mocap network (joins the multicast there)")
     rigid_body: str = option("uav1", help="the vehicle's rigid-body name in the mocap software")
     frame: str = option("y_up", help=f"mocap frame: {sorted(FRAMES)} or 9 numbers (ENU from mocap, row-major)")
-    stream_timeout_s: float = option(0.5, unit="s", help="no frame for this long: the stream has stopped (an event)")
+    stream_timeout_s: float = option(0.5, flag="--stream-timeout", unit="s", help="no frame for this long: the stream has stopped (an event)")
     vel_cutoff_hz: float = 15.0
 
 

@@ -234,6 +234,8 @@ def natnet_rigid_bodies(host: str, port: int, timeout_s: float = 2.0) -> tuple[t
             info = natnet.parse_server_info(natnet.split(s.recv(65536))[1])
             s.sendto(natnet.packet(natnet.NAT_REQUEST_MODELDEF), (host, port))
             message_id, payload = natnet.split(s.recv(65536))
+            if message_id != natnet.NAT_MODELDEF:
+                raise natnet.NatNetError(f"message {message_id} in answer to NAT_REQUEST_MODELDEF")
         except (OSError, natnet.NatNetError) as exc:
             raise SystemExit(f"source: no NatNet server answered at {host}:{port} ({exc}); is Motive streaming "
                              "(Edit → Settings → Streaming: Enable) and is this the command port?") from None

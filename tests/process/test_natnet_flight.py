@@ -69,13 +69,13 @@ def test_the_landing_test_over_natnet_tracks_like_the_direct_source_and_the_reco
     assert len(states["natnet"]) > 0.9 * DURATION_S * 50, "a state every period"
     assert landing["direct"] < 0.03 and landing["natnet"] < 0.03, landing
     assert rms["natnet"] < 1.5 * rms["direct"] + 0.005, rms  # the NatNet path adds ~1 ms to a 20 ms loop delay
-    assert "rigid bodies ['uav1']" in outs["natnet"] and "lost" not in outs["natnet"]
+    assert "rigid bodies ['uav1']" in outs["natnet"] and "rigid body 'uav1' lost" not in outs["natnet"]
 
     files = sorted(glob.glob(f"{natnet_dir}/*.rrd"))
     assert files, outs["natnet"][-2000:]
     rec = read_recording(files[-1])
     assert set(rec.channel("state").columns["source"]) == {"mocap"}
-    health = rec.channel("health/source").columns["status"]
+    health = [s for s in rec.channel("health/source").columns["status"] if s != "ok"]  # "ok": before it connected
     assert health and all("optitrack (NatNet 4.1 at 127.0.0.1:" in s for s in health), health[:3]
 
 
@@ -88,8 +88,10 @@ def test_a_rigid_body_lost_for_a_second_is_flagged_and_the_hover_goes_on(tmp_pat
     assert len(lost) == 1 and len(back) == 1, lines[-20:]
     gap_s = float(back[0].split("tracked again after ")[1].split(" s")[0])
     assert 0.95 < gap_s < 1.1, back
-    frames_without = int(lines[-1].split(" frames without")[0].split(", ")[-1].split()[0]) if "done:" in lines[-1] else -1
-    assert 90 <= frames_without <= 110, lines[-1]  # 100 Hz frames for 1 s
+    done = [line for line in lines if "done:" in line]
+    assert len(done) == 1, lines[-10:]
+    frames_without = int(done[0].split(" frames without")[0].split(", ")[-1])
+    assert 90 <= frames_without <= 110, done  # 100 Hz frames for 1 s
     states = flight.probe.get("state")
     gaps = np.diff([m.stamp_s for m in states])
     assert 0.95 < gaps.max() < 1.1 and np.sum(gaps > 0.1) == 1, "no state while it was lost, states before and after"
