@@ -75,13 +75,22 @@ def measure(rate_hz: float, duration_s: float = 4.0) -> dict:
 
 
 def natnet_rows(duration_s: float = 4.0) -> list[tuple[str, ...]]:
-    rows = []
+    """The table's rows; the figures also go to ``out/bench.json`` under ``"natnet"`` (µs by frame rate)."""
+    import numpy as np
+
+    from bench.table import write_results
+
+    rows, figures = [], {}
     for rate_hz in (120.0, 360.0):
         r = measure(rate_hz, duration_s)
+        if r["bus"]:
+            p50, p99 = np.percentile(np.array(r["bus"]) * 1e6, [50, 99])
+            figures[f"{rate_hz:g}_hz"] = {"samples": len(r["bus"]), "p50_us": round(float(p50)), "p99_us": round(float(p99))}
         rows.append((f"frame leaves the simulated Motive → state at a bus subscriber, {rate_hz:g} Hz frames",
                      *latency_stats(r["bus"]), f"{r['frames']} frames, a state every 20 ms"))
         rows.append(("  of which: frame → the source's stamp (UDP, libmotioncapture, MocapSource)",
-                     *latency_stats(r["source"]), ""))
+                     *latency_stats(r["source"]), "incl. the server's sender thread waking"))
+    write_results({"natnet": figures})
     return rows
 
 

@@ -48,8 +48,8 @@ class NatNetServerConfig:
 @dataclass(frozen=True)
 class StreamModel:
     """What the motion-capture system does to each sample on its way out: ``latency_s`` from mid-exposure
-    to transmission (the world's mocap model, :class:`sim.mocap.MocapConfig`), ``jitter_std_s`` of that
-    transmission (Gaussian, never earlier than the exposure), ``dropout`` (probability a frame is not
+    to transmission (the world's mocap model, :class:`sim.mocap.MocapConfig`), ``jitter_std_s``: each frame
+    leaves a further |N(0, jitter_std_s)| late (half-normal: never before its latency), ``dropout`` (probability a frame is not
     sent), ``lost``: (start_s, duration_s) windows of world time in which the rigid bodies are not
     tracked (frames still go out, with the tracking-valid flag clear). ``up_axis``: Motive's "y"
     (default) or "z"."""

@@ -1,5 +1,6 @@
 """NatNet packets (sim/natnet.py): built as OptiTrack's parsers read them (checked with the independent
-`natnet` package's parser), pose conversion for both Motive up axes, malformed input refused."""
+`natnet` package's parser), pose conversion for both Motive up axes, malformed input refused; the world's
+stream model (latency, lost windows, seeded jitter and dropouts); `neso up --mocap natnet`'s refusals and ports."""
 from __future__ import annotations
 
 import math
@@ -90,3 +91,64 @@ def test_lost_windows_parse_or_refuse():
     assert NatNetStreamConfig(lost="5:1, 8.5:0.25").lost_windows() == ((5.0, 1.0), (8.5, 0.25))
     with pytest.raises(ValueError, match="start:duration"):
         NatNetStreamConfig(lost="5-1").lost_windows()
+
+
+class _Collect:
+    """Stands in for the server's queue: what WorldStream submits."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[float, float, list]] = []
+
+    def submit(self, send_at_s, mid_exposure_s, bodies) -> None:
+        self.frames.append((send_at_s, mid_exposure_s, bodies))
+
+
+def test_the_world_stream_sends_each_sample_after_its_latency_and_flags_the_lost_window():
+    from sim.natnet_server import StreamModel, WorldStream
+
+    out = _Collect()
+    stream = WorldStream(out, StreamModel(latency_s=0.010, lost=((0.5, 0.25),)), body_id=3, anchor_s=100.0, seed=1)
+    for k in range(100):
+        stream.sample(k * 0.01, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+    assert len(out.frames) == 100
+    assert all(send == pytest.approx(mid + 0.010) for send, mid, _ in out.frames)
+    untracked = [round(mid - 100.0, 2) for _, mid, bodies in out.frames if not bodies[0].tracked]
+    assert untracked == [round(0.5 + 0.01 * i, 2) for i in range(25)]
+    assert {bodies[0].id for _, _, bodies in out.frames} == {3}
+
+
+def test_jitter_and_dropouts_are_seeded_and_never_send_before_the_exposure():
+    from sim.natnet_server import StreamModel, WorldStream
+
+    runs = []
+    for _ in range(2):
+        out = _Collect()
+        stream = WorldStream(out, StreamModel(latency_s=0.0, jitter_std_s=0.001, dropout=0.2), body_id=1, anchor_s=0.0,
+                             seed=7)
+        for k in range(2000):
+            stream.sample(k * 0.01, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+        runs.append([(send, mid) for send, mid, _ in out.frames])
+        assert 0.17 < stream.dropped / 2000 < 0.23
+    assert runs[0] == runs[1]
+    late = np.array([send - mid for send, mid in runs[0]])
+    assert late.min() >= 0.0 and 0.0005 < np.mean(late) < 0.0011  # |N(0, 1 ms)|: mean 0.8 ms
+
+
+def test_neso_up_refuses_natnet_with_lockstep_or_a_mavlink_vehicle(capsys):
+    from cli.main import build_parser
+    from cli.up import run
+
+    for extra in (["--lockstep"], ["--vehicle", "mavlink"]):
+        assert run(build_parser().parse_args(["up", "--mocap", "natnet", *extra])) == 2
+        assert "--mocap natnet runs in real time with --vehicle direct only" in capsys.readouterr().out
+
+
+def test_neso_up_gives_each_vehicles_source_its_own_simulated_motive():
+    from cli.main import build_parser
+    from cli.up import build_specs
+
+    specs = {s.name: s.argv for s in build_specs(build_parser().parse_args(
+        ["up", "--mocap", "natnet", "--natnet-port", "3000", "--name", "a", "--name", "b"]))}
+    for name, port in (("a/source", "3000"), ("b/source", "3002")):
+        argv = list(specs[name])
+        assert argv[argv.index("--mocap-stream") + 1] == "natnet" and argv[argv.index("--natnet-port") + 1] == port
