@@ -56,6 +56,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--natnet-port", type=int, default=src.natnet.port,
                    help="--mocap natnet: the first vehicle's Motive command port (data: +1; the next vehicle: +2)")
     p.add_argument("--natnet-up-axis", default=src.natnet.up_axis, choices=("y", "z"), help="--mocap natnet: Motive's up axis")
+    p.add_argument("--natnet-rate", type=float, default=src.natnet.rate_hz,
+                   help="--mocap natnet: frame rate in Hz, 100-360 (0: the world's mocap model's, 100 Hz)")
     p.add_argument("--natnet-lost", default=src.natnet.lost,
                    help="--mocap natnet: world-time windows with the rigid body untracked, 'start:duration,...' in s")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
@@ -116,7 +118,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--mavlink", f"udpin://127.0.0.1:{args.mavlink_port + index}", "--forward-sources", "sim,mocap"]
     if role == "source" and args.mocap == "natnet":
         specific += ["--mocap-stream", "natnet", "--natnet-port", str(args.natnet_port + 2 * index),
-                     "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost", args.natnet_lost]
+                     "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost", args.natnet_lost,
+                     "--natnet-rate", str(args.natnet_rate)]
     if role == "source" and args.vehicle == "mavlink":
         specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
         if args.mavlink_log:

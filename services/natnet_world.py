@@ -5,8 +5,8 @@ Why a process of its own: libmotioncapture's ``connect`` holds Python's GIL whil
 server's answer, so a server in the source's own process could never answer it; and it is what a lab
 has, the motion capture on another machine. Over a pipe to the source: setpoints in (msgpack bytes,
 the newest acts from the next period, as in the direct simulator), truth out (one ``TruthMsg`` per
-period, ``seq`` counting the world's periods). Every mocap sample the world takes (its rate, noise and
-latency from the scenario's ``sim.mocap.MocapConfig``) leaves as a NatNet frame at its exposure time
+period, ``seq`` counting the world's periods). Every mocap sample the world takes (noise and latency from
+the scenario's ``sim.mocap.MocapConfig``, its rate too unless ``--natnet-rate``) leaves as a NatNet frame at its exposure time
 plus that latency (:class:`sim.natnet_server.WorldStream`), through the jitter, dropouts and lost
 windows of ``--natnet-*``.
 """
@@ -30,9 +30,9 @@ def stream_model(config: SourceConfig, latency_s: float) -> StreamModel:
 
 def run_world(conn, config: SourceConfig) -> None:
     """The child's main: ``("ready", command_port)`` once the server listens, then a truth per period until
-    the pipe closes or brings ``None``."""
+    the pipe closes or brings an empty message."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the source ends us
-    core = SimSource(config, clock=time.monotonic)
+    core = SimSource(config, clock=time.monotonic, mocap_rate_hz=config.natnet.rate_hz)
     samples: list = []
     core.sim.mocap_out = samples
     server = NatNetServer(NatNetServerConfig(bodies={config.mocap.rigid_body: BODY_ID}, command_port=config.natnet.port,

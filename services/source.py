@@ -41,7 +41,9 @@ def run(args, bus) -> int:
     if config.mocap_stream == "natnet":
         if config.lockstep or config.link == "mavlink":
             raise SystemExit("source: --mocap-stream natnet runs in real time with --link direct only")
-        config.natnet.lost_windows()  # refuse bad windows before joining the bus
+        config.natnet.lost_windows()  # refuse bad windows and rates before joining the bus
+        if config.natnet.rate_hz and not (100 <= config.natnet.rate_hz <= 360 and config.natnet.rate_hz == int(config.natnet.rate_hz)):
+            raise SystemExit(f"source: --natnet-rate {config.natnet.rate_hz:g}: a whole number of Hz in 100-360 (0: the world's)")
         return run_node(node, lambda n: _run_sim_natnet(n, config))
     if config.link == "mavlink":
         if config.lockstep:
