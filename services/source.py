@@ -39,11 +39,10 @@ def run(args, bus) -> int:
         frame_matrix(config.mocap.frame)  # refuse a bad frame before joining the bus
         return run_node(node, lambda n: _run_mocap(n, config))
     if config.mocap_stream == "natnet":
-        if config.lockstep or config.link == "mavlink":
-            raise SystemExit("source: --mocap-stream natnet runs in real time with --link direct only")
-        config.natnet.lost_windows()  # refuse bad windows and rates before joining the bus
-        if config.natnet.rate_hz and not (100 <= config.natnet.rate_hz <= 360 and config.natnet.rate_hz == int(config.natnet.rate_hz)):
-            raise SystemExit(f"source: --natnet-rate {config.natnet.rate_hz:g}: a whole number of Hz in 100-360 (0: the world's)")
+        problem = natnet_refusal(config)  # refused before joining the bus: one line, exit 2
+        if problem:
+            print(f"source: {problem}", file=sys.stderr, flush=True)
+            raise SystemExit(2)
         return run_node(node, lambda n: _run_sim_natnet(n, config))
     if config.link == "mavlink":
         if config.lockstep:
@@ -173,6 +172,20 @@ def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) ->
             raise TimeoutError(f"lockstep: {missing} not alive after {timeout_s:.0f} s")
         node.wait(0.05)
     node.log(f"lockstep: {list(names)} alive, starting")
+
+
+def natnet_refusal(config: SourceConfig) -> str:
+    """Why ``--mocap-stream natnet`` cannot run with ``config`` (one line), or ""."""
+    if config.lockstep or config.link == "mavlink":
+        return "--mocap-stream natnet runs in real time with --link direct only"
+    try:
+        config.natnet.lost_windows()
+    except ValueError as exc:
+        return str(exc)
+    rate = config.natnet.rate_hz
+    if rate and not (100 <= rate <= 360 and rate == int(rate)):
+        return f"--natnet-rate {rate:g}: a whole number of Hz in 100-360 (0: the world's)"
+    return ""
 
 
 def _run_sim_natnet(node, config: SourceConfig) -> None:

@@ -152,3 +152,18 @@ def test_neso_up_gives_each_vehicles_source_its_own_simulated_motive():
     for name, port in (("a/source", "3000"), ("b/source", "3002")):
         argv = list(specs[name])
         assert argv[argv.index("--mocap-stream") + 1] == "natnet" and argv[argv.index("--natnet-port") + 1] == port
+
+
+def test_the_source_refuses_a_natnet_stream_it_cannot_run_in_one_line():
+    from dataclasses import replace
+
+    from flight.source import SourceConfig
+    from services.source import natnet_refusal
+
+    ok = SourceConfig(mocap_stream="natnet")
+    assert natnet_refusal(ok) == "" and natnet_refusal(replace(ok, natnet=NatNetStreamConfig(rate_hz=360.0))) == ""
+    assert "real time with --link direct only" in natnet_refusal(replace(ok, lockstep=True))
+    assert "real time with --link direct only" in natnet_refusal(replace(ok, link="mavlink"))
+    assert "start:duration" in natnet_refusal(replace(ok, natnet=NatNetStreamConfig(lost="1-2")))
+    for rate in (50.0, 400.0, 120.5):
+        assert "100-360" in natnet_refusal(replace(ok, natnet=NatNetStreamConfig(rate_hz=rate)))
