@@ -285,11 +285,15 @@ def _run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> Non
     seen = [0]
     watch = {"last_frame_s": time.monotonic(), "stopped_since": None, "lost_since": None, "lost_frames": 0}
 
+    stopping = [False]
+
     def read_frames() -> None:
-        while not node.stopping:
+        while not node.stopping and not stopping[0]:
             mc.waitForNextFrame()
             now = time.monotonic()
             body = mc.rigidBodies.get(name)
+            if stopping[0]:
+                return
             with node.lock:
                 seen[0] += 1
                 watch["last_frame_s"] = now
@@ -326,7 +330,8 @@ def _run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> Non
         return f"mocap {kind}: {lost}{seen[0]} frames, sample {core.seq}, {watch['lost_frames']} frames without the body"
 
     node.status_hook = status
-    threading.Thread(target=read_frames, name="mocap-frames", daemon=True).start()
+    reader = threading.Thread(target=read_frames, name="mocap-frames", daemon=True)
+    reader.start()
     while not node.stopping and (n_total is None or core.seq + 1 < n_total):
         node.wait(0.05)
         with node.lock:
@@ -336,4 +341,6 @@ def _run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> Non
                 node.stats.count("stream_stops")
                 node.event("warning", f"mocap stream from {where} stopped: no frame for {silent_s:.2f} s; no state "
                                       "until it is back")
+    stopping[0] = True
+    reader.join(timeout=1.0)  # it leaves at its next frame; a stopped stream leaves it blocked in the library (a daemon)
     node.log(f"done: {seen[0]} frames, {core.seq + 1} states, {watch['lost_frames']} frames without {name!r}")
