@@ -19,6 +19,8 @@ the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
 (:mod:`bench.gateway`, ~25 s).
+Then motion capture over NatNet: a frame leaving the simulated Motive → the state on the bus, at 120 and 360 Hz
+frames, p50/p99 (:mod:`bench.natnet`, ~20 s).
 Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
 Then importing PX4 logs: the shared CubeOrange log and a 20-minute log (:mod:`bench.px4_import`, ~40 s).
 Then the stability certificates: max certified L_N of each method over a gain grid, the cost of
@@ -135,6 +137,11 @@ def main(argv: list[str]) -> int:
 
     print(flush=True)
     print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
+
+    from bench.natnet import COLUMNS as NATNET_COLUMNS, natnet_rows
+
+    print(flush=True)
+    print_table(NATNET_COLUMNS, natnet_rows(duration_s=2.0 if quick else 4.0))
 
     print(flush=True)
     from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows

@@ -50,6 +50,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink"),
                    help="how setpoints reach the vehicle: direct (the sim source applies them) or mavlink (the sim "
                         "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK)")
+    p.add_argument("--mocap", default="direct", choices=("direct", "natnet"),
+                   help="how the simulated world's motion capture reaches the source: direct, or natnet (a simulated "
+                        "Motive streams NatNet on loopback, read by the motioncapture optitrack client as in a lab)")
+    p.add_argument("--natnet-port", type=int, default=src.natnet.port,
+                   help="--mocap natnet: the first vehicle's Motive command port (data: +1; the next vehicle: +2)")
+    p.add_argument("--natnet-up-axis", default=src.natnet.up_axis, choices=("y", "z"), help="--mocap natnet: Motive's up axis")
+    p.add_argument("--natnet-rate", type=float, default=src.natnet.rate_hz,
+                   help="--mocap natnet: frame rate in Hz, 100-360 (0: the world's mocap model's, 100 Hz)")
+    p.add_argument("--natnet-lost", default=src.natnet.lost,
+                   help="--mocap natnet: world-time windows with the rigid body untracked, 'start:duration,...' in s")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
@@ -106,6 +116,10 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--registry", args.registry, "--recordings-dir", args.recordings_dir]
     elif role == "px4_gateway":
         specific = ["--mavlink", f"udpin://127.0.0.1:{args.mavlink_port + index}", "--forward-sources", "sim,mocap"]
+    if role == "source" and args.mocap == "natnet":
+        specific += ["--mocap-stream", "natnet", "--natnet-port", str(args.natnet_port + 2 * index),
+                     "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost", args.natnet_lost,
+                     "--natnet-rate", str(args.natnet_rate)]
     if role == "source" and args.vehicle == "mavlink":
         specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
         if args.mavlink_log:
@@ -221,6 +235,10 @@ def run(args) -> int:
         print("neso up: --vehicle mavlink runs in real time only (MAVSDK and the MAVLink link keep their own clock)",
               flush=True)
         return 2
+    if args.mocap == "natnet" and (args.lockstep or args.vehicle == "mavlink"):
+        print("neso up: --mocap natnet runs in real time with --vehicle direct only (the stream keeps its own clock)",
+              flush=True)
+        return 2
     problem = check_credentials(args, [r for r in ROLES if role_enabled(args, r)])
     if problem:
         print(f"neso up: {problem}", flush=True)
@@ -229,6 +247,9 @@ def run(args) -> int:
     security = " (secure: mutual TLS, access control)" if args.secure else ""
     print(f"neso up: hub {hub_endpoint(args)}{security}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
+    if args.mocap == "natnet":
+        print(f"  motion capture:   NatNet from a simulated Motive on 127.0.0.1:{args.natnet_port} (+2 per vehicle), "
+              f"{args.natnet_up_axis}-up, read by the motioncapture optitrack client", flush=True)
     loop_cpus, other_cpus = cpu_sets(isolating(args))
     if loop_cpus:
         print(f"  CPUs:             loop (hub, source, estimator, controller, px4_gateway) on {list(loop_cpus)}, "

@@ -23,7 +23,7 @@ then go to the vehicle (the PX4 gateway), not to the source.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -51,9 +51,36 @@ class MocapConfig:
     type: str = option("optitrack", flag="--mocap-type",
                        help="motioncapture backend (optitrack, vicon, qualisys, vrpn, mock...)")
     hostname: str = option("127.0.0.1", flag="--mocap-host", help="the mocap system's address")
+    port: int = option(1510, flag="--mocap-port", help="optitrack: Motive's NatNet command port")
+    interface: str = option("0.0.0.0", flag="--mocap-interface",
+                            help="optitrack: this machine's address on the mocap network (joins the multicast there)")
     rigid_body: str = option("uav1", help="the vehicle's rigid-body name in the mocap software")
     frame: str = option("y_up", help=f"mocap frame: {sorted(FRAMES)} or 9 numbers (ENU from mocap, row-major)")
+    stream_timeout_s: float = option(0.5, flag="--stream-timeout", unit="s",
+                                     help="no frame for this long: the stream has stopped (an event)")
     vel_cutoff_hz: float = 15.0
+
+
+@dataclass(frozen=True)
+class NatNetStreamConfig:
+    """The simulated Motive of ``--mocap-stream natnet``: its command port (the data port is the next one),
+    up axis, and what happens to the frames on the way (:class:`sim.natnet_server.StreamModel`; the
+    latency is the world's mocap model's)."""
+
+    port: int = option(1510, flag="--natnet-port", help="the simulated Motive's command port (data: the next port)")
+    up_axis: str = option("y", flag="--natnet-up-axis", choices=("y", "z"), help="Motive's up axis")
+    rate_hz: float = option(0.0, flag="--natnet-rate", unit="Hz",
+                            help="frame rate, 100-360 (0: the world's mocap model's, 100 Hz); the physics step shrinks to fit")
+    jitter_ms: float = option(0.0, flag="--natnet-jitter", unit="ms", help="std of each frame's send time")
+    dropout: float = option(0.0, flag="--natnet-dropout", help="probability a frame is not sent")
+    lost: str = option("", flag="--natnet-lost",
+                       help="world-time windows with the rigid body untracked: 'start:duration,...' in s")
+
+    def lost_windows(self) -> tuple[tuple[float, float], ...]:
+        try:
+            return tuple((float(a), float(b)) for a, b in (w.split(":") for w in self.lost.split(",") if w.strip()))
+        except ValueError:
+            raise ValueError(f"--natnet-lost {self.lost!r}: windows 'start:duration' in s, comma-separated") from None
 
 
 @dataclass(frozen=True)
@@ -76,18 +103,29 @@ class SourceConfig:
     mavlink_out: str = option("udpout:127.0.0.1:14540",
                               help="where the simulated PX4 sends its MAVLink (the gateway's udpin address)")
     mavlink_log: str = option("", help="JSON-lines log of every MAVLink command/setpoint received")
+    mocap_stream: str = option("direct", choices=("direct", "natnet"),
+                               help="how the simulated world's mocap samples become the state: direct (in this "
+                                    "process) or natnet (a simulated Motive streams NatNet on loopback, read by the "
+                                    "motioncapture optitrack client as in a lab; services/source.py)")
+    natnet: NatNetStreamConfig = option(default_factory=NatNetStreamConfig, nested=True)
 
 
 class SimSource:
-    """The simulator as a pure step object: :meth:`take` a setpoint, :meth:`step` a period."""
+    """The simulator as a pure step object: :meth:`take` a setpoint, :meth:`step` a period.
+    ``mocap_rate_hz``: the world's motion capture at that rate instead of its model's (an integer in Hz;
+    the physics step becomes 1/lcm(rate, 500) s so that every period stays a whole number of steps)."""
 
-    def __init__(self, config: SourceConfig, *, clock: Callable[[], float]) -> None:
+    def __init__(self, config: SourceConfig, *, clock: Callable[[], float], mocap_rate_hz: float = 0.0) -> None:
         from sim.quadrotor import QuadrotorSim
         from sim.scenarios import make_scenario
 
         self.config = config
         self.clock = clock
         self.scenario = make_scenario(config.scenario, control_period_s=1.0 / config.rate_hz)
+        if mocap_rate_hz:
+            steps_per_s = math.lcm(int(mocap_rate_hz), round(1.0 / self.scenario.dt_s))
+            self.scenario = replace(self.scenario, dt_s=1.0 / steps_per_s,
+                                    mocap=replace(self.scenario.mocap, rate_hz=float(int(mocap_rate_hz))))
         self.sim = QuadrotorSim(self.scenario, seed=config.seed)
         x, y, z = self.scenario.initial_pos_enu_m
         self.sim.reset(pos_enu_m=(x, y, z if config.start == "scenario" else -1.0), yaw_rad=self.scenario.initial_yaw_rad)

@@ -318,6 +318,7 @@ class QuadrotorSim:
         self._latency_ticks = _ticks(config.mocap.latency_s, dt, "mocap latency_s")
         self._seed = seed
         self._physics = self._physics_constants()
+        self.mocap_out: list[MocapSample] | None = None  # a list here receives every mocap sample taken (a NatNet stream)
         self.reset(pos_enu_m=config.initial_pos_enu_m, yaw_rad=config.initial_yaw_rad)
 
     def _physics_constants(self) -> _Physics:
@@ -508,6 +509,8 @@ class QuadrotorSim:
         )
         s = self._mocap.sample(self._n * self._dt, (self._pos[0], self._pos[1], self._pos[2]), rpy)
         self._samples.append((self._n, s))
+        if self.mocap_out is not None:
+            self.mocap_out.append(s)
 
     def _measurement(self) -> StateMeasurement:
         limit = self._n - self._latency_ticks

@@ -1,0 +1,68 @@
+"""The simulated world behind ``source --mocap-stream natnet``: a child process that flies the vehicle in
+real time and shows it to the source only through a simulated Motive (NatNet on loopback).
+
+Why a process of its own: libmotioncapture's ``connect`` holds Python's GIL while it waits for the
+server's answer, so a server in the source's own process could never answer it; and it is what a lab
+has, the motion capture on another machine. Over a pipe to the source: setpoints in (msgpack bytes,
+the newest acts from the next period, as in the direct simulator), truth out (one ``TruthMsg`` per
+period, ``seq`` counting the world's periods). Every mocap sample the world takes (noise and latency from
+the scenario's ``sim.mocap.MocapConfig``, its rate too unless ``--natnet-rate``) leaves as a NatNet frame at its exposure time
+plus that latency (:class:`sim.natnet_server.WorldStream`), through the jitter, dropouts and lost
+windows of ``--natnet-*``.
+"""
+from __future__ import annotations
+
+import signal
+import time
+
+from flight.source import SimSource, SourceConfig
+from runtime.schema import SetpointMsg
+from sim.natnet_server import NatNetServer, NatNetServerConfig, StreamModel, WorldStream
+
+BODY_ID = 1
+
+
+def stream_model(config: SourceConfig, latency_s: float) -> StreamModel:
+    nn = config.natnet
+    return StreamModel(latency_s=latency_s, jitter_std_s=nn.jitter_ms / 1e3, dropout=nn.dropout,
+                       lost=nn.lost_windows(), up_axis=nn.up_axis)
+
+
+def run_world(conn, config: SourceConfig) -> None:
+    """The child's main: ``("ready", command_port)`` once the server listens, then a truth per period until
+    the pipe closes or brings an empty message."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the source ends us
+    core = SimSource(config, clock=time.monotonic, mocap_rate_hz=config.natnet.rate_hz)
+    samples: list = []
+    core.sim.mocap_out = samples
+    server = NatNetServer(NatNetServerConfig(bodies={config.mocap.rigid_body: BODY_ID}, command_port=config.natnet.port,
+                                             data_port=config.natnet.port + 1)).start()
+    try:
+        anchor_s = time.monotonic() - core.sim.t_s
+        stream = WorldStream(server, stream_model(config, core.scenario.mocap.latency_s), body_id=BODY_ID,
+                             anchor_s=anchor_s, seed=config.seed)
+        conn.send(("ready", server.command_port))
+        period = 1.0 / config.rate_hz
+        next_tick = time.monotonic()
+        while True:
+            while conn.poll():
+                data = conn.recv_bytes()
+                if not data:
+                    return
+                core.take(SetpointMsg.from_bytes(data))
+            _, truth = core.step()
+            for s in samples:
+                stream.sample(s.t_s, s.pos_enu_m, (s.roll_rad, s.pitch_rad, s.yaw_rad))
+            samples.clear()
+            conn.send_bytes(truth.to_bytes())
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -period:  # fell behind by more than a period: the world's clock moves on with the wall's
+                stream.anchor_s -= delay
+                next_tick = time.monotonic()
+    except (EOFError, BrokenPipeError, OSError):
+        return
+    finally:
+        server.close()

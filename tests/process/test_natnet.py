@@ -1,0 +1,300 @@
+"""The simulated Motive (sim/natnet_server.py) read by the real clients: the `motioncapture` library's
+optitrack backend (what the source flies) and the independent `natnet` package, over loopback UDP.
+
+libmotioncapture's connect holds the GIL while it waits for the server's answer, so its client always
+runs in a process of its own (:func:`read_with_motioncapture`), the server in the test's.
+"""
+from __future__ import annotations
+
+import json
+import queue
+import socket
+import math
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from flight.source import MocapConfig, MocapSource
+from sim import natnet
+from sim.natnet_server import NatNetServer, NatNetServerConfig, free_udp_port
+from runtime.schema import Keys
+from tests.busutil import REPO, free_port, hub, neso, stop
+
+READER = """
+import json, sys, motioncapture
+port, frames = sys.argv[1], int(sys.argv[2])
+mc = motioncapture.connect("optitrack", {"hostname": "127.0.0.1", "port_command": port, "interface_ip": "127.0.0.1"})
+print("connected", flush=True)
+for _ in range(frames):
+    mc.waitForNextFrame()
+    print(json.dumps({name: [list(map(float, b.position)), [b.rotation.w, b.rotation.x, b.rotation.y, b.rotation.z]]
+                      for name, b in mc.rigidBodies.items()}), flush=True)
+"""
+
+
+class Reader:
+    """The `motioncapture` client in a process of its own reading ``frames`` frames; its lines collected
+    by a thread (``lines``)."""
+
+    def __init__(self, command_port: int, frames: int) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-c", READER, str(command_port), str(frames)], cwd=REPO,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.out: list[str] = []
+        self._thread = threading.Thread(target=lambda: [self.lines.put(line) for line in self.proc.stdout], daemon=True)
+        self._thread.start()
+
+    def wait_connected(self, timeout_s: float = 10.0) -> None:
+        """Until it says it connected (the library may print its own notice first)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if line.strip() == "connected":
+                return
+            self.out.append(line)
+        self.proc.kill()
+        raise AssertionError(f"the motioncapture client did not connect within {timeout_s} s: {self.out}")
+
+    def frames(self, timeout_s: float = 20.0) -> list[dict]:
+        """Every frame it printed, once it has read them all (killed and failed after ``timeout_s``)."""
+        try:
+            self.proc.wait(timeout=timeout_s)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+            self._thread.join(timeout=5)
+        while not self.lines.empty():
+            self.out.append(self.lines.get())
+        assert self.proc.returncode == 0, self.out
+        return [json.loads(line) for line in self.out if line.startswith("{")]
+
+
+class Streamer:
+    """Sends frame ``k % len(frames)`` at ``rate_hz`` from a thread until closed (a reader may skip frames
+    to catch up, so it reads a number of frames while the stream goes on). ``sent``: frames sent."""
+
+    def __init__(self, server: NatNetServer, frames: list[list[natnet.BodyPose]], rate_hz: float = 100.0) -> None:
+        self.server, self.frames, self.period_s = server, frames, 1.0 / rate_hz
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_s = time.monotonic()
+        while not self._stop.is_set():
+            self.server.submit(next_s, next_s, self.frames[self.sent % len(self.frames)])
+            self.sent += 1
+            next_s += self.period_s
+            self._stop.wait(max(0.0, next_s - time.monotonic()))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def read_with_motioncapture(server: NatNetServer, frames: list[list[natnet.BodyPose]], n_read: int,
+                            rate_hz: float = 100.0) -> list[dict]:
+    """``n_read`` frames as the `motioncapture` client saw them (``{name: [pos, quat_wxyz]}`` each)."""
+    client = Reader(server.command_port, n_read)
+    client.wait_connected()
+    streamer = Streamer(server, frames, rate_hz)
+    try:
+        return client.frames()
+    finally:
+        streamer.close()
+
+
+@pytest.fixture
+def server():
+    with NatNetServer(NatNetServerConfig(bodies={"uav1": 1, "uav2": 7}, command_port=free_udp_port(),
+                                         data_port=free_udp_port())) as s:
+        yield s
+
+
+KNOWN_POSES = [  # (ENU position m, roll pitch yaw rad)
+    ((1.0, 2.0, 0.5), (0.0, 0.0, math.radians(90))),
+    ((-0.3, 0.4, 1.2), (math.radians(10), 0.0, 0.0)),
+    ((0.2, -1.5, 0.8), (math.radians(10), math.radians(-5), math.radians(90))),
+]
+FRAME_OF_UP_AXIS = {"y": "y_up", "z": "enu"}  # the source's --frame for each Motive up axis
+
+
+@pytest.mark.parametrize("up_axis", ["y", "z"])
+def test_known_poses_come_back_through_the_real_client_in_enu(server, up_axis):
+    frames = []
+    for pos, rpy in KNOWN_POSES:
+        p, q = natnet.motive_pose(pos, rpy, up_axis)
+        frames.append([natnet.BodyPose(1, p, q)])
+    got = read_with_motioncapture(server, frames, 30)
+    assert len(got) == 30, got
+    source = MocapSource(MocapConfig(frame=FRAME_OF_UP_AXIS[up_axis]), 1000.0, clock=time.monotonic)
+    seen = {}
+    for k, frame in enumerate(got):
+        pos_m, quat_wxyz = frame["uav1"]
+        state = source.frame(k * 0.01, np.array(pos_m), tuple(quat_wxyz))
+        seen[tuple(np.round(state.pos_enu_m, 3))] = (state.roll_rad, state.pitch_rad, state.yaw_rad)
+    for pos, rpy in KNOWN_POSES:
+        assert np.allclose(seen[tuple(np.round(pos, 3))], rpy, atol=1e-5), (pos, seen)
+    if up_axis == "y":  # Motive's default: y is up, so the height is the second coordinate on the wire
+        p, _ = natnet.motive_pose(KNOWN_POSES[0][0], KNOWN_POSES[0][1], "y")
+        assert p[1] == 0.5 and p[2] == -2.0
+
+
+def test_a_lost_rigid_body_disappears_from_the_client_and_the_other_stays(server):
+    p, q = natnet.motive_pose((0, 0, 1), (0, 0, 0), "y")
+    frames = [[natnet.BodyPose(1, p, q, tracked=k % 10 < 5), natnet.BodyPose(7, p, q)] for k in range(10)]
+    got = read_with_motioncapture(server, frames, 40)
+    assert all("uav2" in f for f in got), "the tracked body is in every frame"
+    lost = [f for f in got if "uav1" not in f]
+    assert lost and len(lost) < len(got), "uav1 is missing exactly while it is untracked"
+
+
+def test_dropped_frames_are_simply_not_there(server):
+    p, q = natnet.motive_pose((0, 0, 1), (0, 0, 0), "y")
+    sent = [[natnet.BodyPose(1, (k * 0.001, p[1], p[2]), q)] for k in range(60)]
+    kept = [f for k, f in enumerate(sent) if k % 3 != 1]  # every third frame dropped on the way
+    xs = [round(f["uav1"][0][0] * 1000) for f in read_with_motioncapture(server, kept, 30)]
+    assert len(xs) == 30 and all(x % 3 != 1 for x in xs), xs
+    steps = {b - a for a, b in zip(xs, xs[1:]) if b > a}
+    assert 2 in steps, "a dropped frame leaves a gap the client sees"
+
+
+def test_two_clients_on_the_same_multicast_stream_each_follow_their_vehicle(server):
+    frames = [[natnet.BodyPose(1, (1.0, 1.0, k * 0.001), (0, 0, 0, 1)),
+               natnet.BodyPose(7, (2.0, 1.0, k * 0.001), (0, 0, 0, 1))] for k in range(50)]
+    a, b = Reader(server.command_port, 30), Reader(server.command_port, 30)
+    a.wait_connected()
+    b.wait_connected()
+    streamer = Streamer(server, frames)
+    try:
+        both = [a.frames(), b.frames()]
+    finally:
+        streamer.close()
+    for got in both:
+        assert len(got) == 30 and all(f["uav1"][0][0] == 1.0 and f["uav2"][0][0] == 2.0 for f in got), got[:3]
+
+
+def test_unicast_reaches_the_library(server):
+    with NatNetServer(NatNetServerConfig(command_port=free_udp_port(), data_port=free_udp_port(),
+                                         multicast=False)) as uni:
+        got = read_with_motioncapture(uni, [[natnet.BodyPose(1, (0.1, 1.0, 0.2), (0, 0, 0, 1))]], 20)
+    assert got and all(f["uav1"][0] == pytest.approx([0.1, 1.0, 0.2]) for f in got)
+
+
+def test_the_independent_natnet_client_reads_the_same_stream(server):
+    from natnet import NatNetClient
+    from natnet.version import Version
+
+    frames, descriptions = [], []
+    client = NatNetClient(server_ip_address="127.0.0.1", local_ip_address="127.0.0.1", command_port=server.command_port,
+                          data_port=server.config.data_port, use_multicast=True)
+    client.on_data_frame_received_event.handlers.append(frames.append)
+    client.on_data_description_received_event.handlers.append(descriptions.append)
+    with client:
+        assert client.server_info.nat_net_protocol_version == Version(4, 1, 0, 0)
+        client.request_modeldef()
+        p, q = natnet.motive_pose((1.0, 2.0, 0.5), (0.0, 0.0, math.radians(90)), "y")
+        streamer = Streamer(server, [[natnet.BodyPose(1, p, q), natnet.BodyPose(7, (0, 0, 0), (0, 0, 0, 1), tracked=False)]])
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and len(frames) < 15:
+            client.update_sync()
+            time.sleep(0.02)
+        streamer.close()
+    names = {rb.id_num: rb.name for d in descriptions for rb in d.rigid_bodies}
+    assert names == {1: "uav1", 7: "uav2"}
+    assert len(frames) >= 15
+    bodies = {rb.id_num: rb for rb in frames[-1].rigid_bodies}
+    assert bodies[1].pos == pytest.approx(p, abs=1e-6) and bodies[1].rot == pytest.approx(q, abs=1e-6)
+    assert bodies[1].tracking_valid and not bodies[7].tracking_valid
+    numbers = [f.prefix.frame_number for f in frames]
+    assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers)
+    for a, b in zip(frames, frames[1:]):  # 100 Hz: the timestamps step by the frame numbers' difference / 100
+        assert b.suffix.timestamp - a.suffix.timestamp == pytest.approx(
+            (b.prefix.frame_number - a.prefix.frame_number) / 100.0, abs=1e-3)
+        assert b.suffix.stamp_camera_mid_exposure > a.suffix.stamp_camera_mid_exposure
+
+
+def test_malformed_commands_are_counted_and_the_server_still_answers(server):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(2.0)
+        for junk in (b"\x00", b"\x00\x00\xff\x00abc", b""):
+            s.sendto(junk, ("127.0.0.1", server.command_port))
+        s.sendto(natnet.packet(natnet.NAT_REQUEST_MODELDEF), ("127.0.0.1", server.command_port))
+        assert natnet.parse_rigid_body_names(natnet.split(s.recv(65536))[1]) == {1: "uav1", 7: "uav2"}
+        s.sendto(natnet.packet(42), ("127.0.0.1", server.command_port))
+        assert natnet.split(s.recv(65536))[0] == natnet.NAT_UNRECOGNIZED_REQUEST
+    assert server.malformed == 3
+
+
+def source(server: NatNetServer, endpoint: str, rigid_body: str) -> subprocess.Popen:
+    return neso("run", "source", "--backend", "mocap", "--mocap-type", "optitrack", "--mocap-port",
+                str(server.command_port), "--mocap-interface", "127.0.0.1", "--rigid-body", rigid_body,
+                "--connect", endpoint)
+
+
+def test_a_wrong_rigid_body_name_is_refused_naming_the_streamed_ones(server):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with hub(endpoint):
+        proc = source(server, endpoint, "uav9")
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 2, out
+    refusal = [line for line in out.splitlines() if "uav9" in line and "streams" in line]
+    assert refusal == [f"source: rigid body 'uav9' is not streamed by the NatNet server at 127.0.0.1:"
+                       f"{server.command_port}; it streams ['uav1', 'uav2'] (--rigid-body, or Motive's Assets pane: "
+                       "the rigid body's name and Streaming on)"], out
+    assert "Traceback" not in out
+
+
+def test_no_server_is_one_clear_line():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with hub(endpoint):
+        proc = neso("run", "source", "--backend", "mocap", "--mocap-type", "optitrack", "--mocap-port",
+                    str(free_udp_port()), "--connect", endpoint)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode != 0 and "no NatNet server answered at 127.0.0.1:" in out and "Traceback" not in out, out
+
+
+def test_the_source_flags_a_stopped_stream_and_a_lost_body_and_goes_on_when_they_are_back(server):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    tracked, untracked = [[natnet.BodyPose(1, (0, 1, 0), (0, 0, 0, 1))]], [[natnet.BodyPose(1, (0, 1, 0), (0, 0, 0, 1),
+                                                                                            tracked=False)]]
+    with hub(endpoint) as s:
+        states: list[float] = []
+        sub = s.declare_subscriber(Keys("uav1").topic("state"), lambda sample: states.append(time.monotonic()))
+        proc = source(server, endpoint, "uav1")
+        try:
+            streamer = Streamer(server, tracked)
+            deadline = time.monotonic() + 20
+            while not states and time.monotonic() < deadline:  # the source is up and publishing
+                time.sleep(0.05)
+            time.sleep(1.0)
+            streamer.close()
+            for frames, seconds in (([], 1.0), (tracked, 1.5), (untracked, 1.0), (tracked, 1.5)):
+                if frames:
+                    streamer = Streamer(server, frames)
+                    time.sleep(seconds)
+                    streamer.close()
+                else:
+                    time.sleep(seconds)  # the stream stops
+        finally:
+            out = stop(proc)
+            sub.undeclare()
+    assert proc.returncode == 0, out
+    events = [line.split("] ", 1)[1] for line in out.splitlines() if "warning:" in line or "info:" in line]
+    stopped = [e for e in events if "stopped: no frame for" in e]
+    back = [e for e in events if "back after" in e]
+    lost = [e for e in events if "rigid body 'uav1' lost" in e]
+    again = [e for e in events if "tracked again after" in e]
+    assert len(stopped) == 1 and len(back) == 1 and len(lost) == 1 and len(again) == 1, events
+    assert 0.9 < float(back[0].split("back after ")[1].split(" s")[0]) < 1.3, back
+    assert 0.9 < float(again[0].split("tracked again after ")[1].split(" s")[0]) < 1.2, again
+    gaps = np.diff(states)
+    assert len(states) > 0.8 * 4.0 * 50 and np.sum(gaps > 0.5) == 2, "states stop twice (stream stopped, body lost), then go on"

@@ -1,0 +1,100 @@
+"""`neso up --mocap natnet`: the whole system flies on states that came world → simulated Motive (NatNet
+on loopback) → the `motioncapture` optitrack client → the source; compared with the direct simulator
+source flown in the same seconds (same seed, same load), and through a rigid body lost for a second."""
+from __future__ import annotations
+
+import glob
+import time
+
+import numpy as np
+
+from recordings.reader import read_recording
+from sim.natnet_server import free_udp_port
+from runtime.client import command
+from tests.busutil import NesoUp, free_port, peer
+
+SEED, DURATION_S = 3, 20.0
+
+
+def up(mocap: str, recordings: str, *extra: str) -> NesoUp:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    return NesoUp("--mocap", mocap, "--natnet-port", str(free_udp_port()), "--duration", str(DURATION_S), "--seed",
+                  str(SEED), "--hub", endpoint, "--no-dashboard", "--no-trainer", "--recordings-dir", recordings, *extra,
+                  bus=peer(endpoint))
+
+
+def finish(flight: NesoUp, timeout_s: float = 60.0) -> str:
+    deadline = time.monotonic() + timeout_s
+    while flight.proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    out = flight.close()
+    assert flight.proc.returncode == 0, out[-3000:]
+    return out
+
+
+def tracking_rms_m(flight: NesoUp) -> float:
+    """RMS distance of the true position from the reference the controller flew, each reference against the
+    newest truth at its time, from the landing test's start to the end of the flight."""
+    truth = flight.probe.get("truth")
+    stamps = np.array([m.stamp_s for m in truth])
+    pos = np.array([m.pos_enu_m for m in truth])
+    refs = flight.probe.get("reference")
+    start = next(i for i, r in enumerate(refs) if r.segment in ("transit", "landing_test"))
+    refs = refs[start:]
+    err = [np.linalg.norm(pos[max(0, np.searchsorted(stamps, r.stamp_s) - 1)] - np.array(r.pos_enu_m)) for r in refs]
+    return float(np.sqrt(np.mean(np.square(err))))
+
+
+def final_height_error_m(flight: NesoUp) -> float:
+    truth = flight.probe.get("truth")
+    return float(np.mean([abs(m.pos_enu_m[2] - 0.1) for m in truth[-50:]]))
+
+
+def test_the_landing_test_over_natnet_tracks_like_the_direct_source_and_the_recording_says_natnet(tmp_path):
+    natnet_dir, direct_dir = str(tmp_path / "natnet"), str(tmp_path / "direct")
+    flights = {"natnet": up("natnet", natnet_dir, "--mission", "hover"),
+               "direct": up("direct", direct_dir, "--mission", "hover")}
+    for f in flights.values():  # both hovering for 2 s, then the landing test in the same moment
+        f.probe.wait_for("state", lambda m: m.seq > 100, 30.0)
+    for f in flights.values():
+        reply = command(f.s, f.probe.keys, "controller", "landing_test", {}, timeout_s=8.0)
+        assert reply.ok, reply
+    outs = {k: finish(f) for k, f in flights.items()}
+    rms = {k: tracking_rms_m(f) for k, f in flights.items()}
+    landing = {k: final_height_error_m(f) for k, f in flights.items()}
+    states = {k: f.probe.get("state") for k, f in flights.items()}
+    print(f"tracking RMS cm: {({k: round(v * 100, 2) for k, v in rms.items()})}; final |z - 0.1| cm: "
+          f"{({k: round(v * 100, 2) for k, v in landing.items()})}; states {({k: len(v) for k, v in states.items()})}")
+    assert {m.source for m in states["natnet"]} == {"mocap"} and {m.source for m in states["direct"]} == {"sim"}
+    assert len(states["natnet"]) > 0.9 * DURATION_S * 50, "a state every period"
+    assert landing["direct"] < 0.03 and landing["natnet"] < 0.03, landing
+    assert rms["natnet"] < 1.5 * rms["direct"] + 0.005, rms  # the NatNet path adds ~1 ms to a 20 ms loop delay
+    assert "rigid bodies ['uav1']" in outs["natnet"] and "rigid body 'uav1' lost" not in outs["natnet"]
+
+    files = sorted(glob.glob(f"{natnet_dir}/*.rrd"))
+    assert files, outs["natnet"][-2000:]
+    rec = read_recording(files[-1])
+    assert set(rec.channel("state").columns["source"]) == {"mocap"}
+    health = [s for s in rec.channel("health/source").columns["status"] if s != "ok"]  # "ok": before it connected
+    assert health and all("optitrack (NatNet 4.1 at 127.0.0.1:" in s for s in health), health[:3]
+
+
+def test_a_rigid_body_lost_for_a_second_is_flagged_and_the_hover_goes_on(tmp_path):
+    flight = up("natnet", str(tmp_path), "--mission", "hover", "--natnet-lost", "5:1")
+    out = finish(flight)
+    lines = [line for line in out.splitlines() if "source |" in line]
+    lost = [line for line in lines if "rigid body 'uav1' lost" in line]
+    back = [line for line in lines if "tracked again after" in line]
+    assert len(lost) == 1 and len(back) == 1, lines[-20:]
+    gap_s = float(back[0].split("tracked again after ")[1].split(" s")[0])
+    assert 0.95 < gap_s < 1.1, back
+    done = [line for line in lines if "done:" in line]
+    assert len(done) == 1, lines[-10:]
+    frames_without = int(done[0].split(" frames without")[0].split(", ")[-1])
+    assert 90 <= frames_without <= 110, done  # 100 Hz frames for 1 s
+    states = flight.probe.get("state")
+    gaps = np.diff([m.stamp_s for m in states])
+    assert 0.95 < gaps.max() < 1.1 and np.sum(gaps > 0.1) == 1, "no state while it was lost, states before and after"
+    truth = flight.probe.get("truth")
+    assert not any(m.crashed for m in truth)
+    assert abs(truth[-1].pos_enu_m[2] - 1.0) < 0.05, "hovering again at 1 m"
