@@ -35,7 +35,10 @@ import threading
 import time
 from dataclasses import dataclass
 
-from neso.frames import attitude_enu_from_ned, attitude_ned_from_enu, quat_ned_from_enu_euler, tilt_rad
+import numpy as np
+
+from neso.frames import (NED_FROM_ENU, attitude_enu_from_ned, attitude_ned_from_enu, matrix_from_quat,
+                         quat_ned_from_enu_euler, tilt_rad)
 from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
 from runtime.options import add_options, comma_list, config_from_options, option
 from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
@@ -310,18 +313,22 @@ class Px4Link:
         self._drain_events()
 
     def _forward_pose(self, msg: StateMsg) -> None:
+        """The state as external vision, in the form PX4 v1.16's EKF2 fuses (mavlink_receiver.cpp,
+        handle_message_odometry): estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which EKF2 does
+        not read), pose frame LOCAL_FRD (MOCAP_NED is not among the frames it accepts: the position arrives
+        as NaN), velocity in the body FRD frame (MAVSDK's child frame)."""
         from mavsdk.plugins.mocap import (AngularVelocityBody, Covariance, Odometry, PositionBody, Quaternion,
                                           SpeedBody)
 
         x, y, z = msg.pos_enu_m
-        vx, vy, vz = msg.vel_enu_mps
-        w, qx, qy, qz = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
+        q = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
+        v_frd = matrix_from_quat(q).T @ (NED_FROM_ENU @ np.asarray(msg.vel_enu_mps, dtype=float))
         nan = Covariance([math.nan])
         self.mocap.set_odometry(Odometry(
-            time_usec=0, frame_id=Odometry.MavFrame.MOCAP_NED, position_body=PositionBody(y, x, -z),
-            q=Quaternion(w, qx, qy, qz), speed_body=SpeedBody(vy, vx, -vz),  # NED velocity, as PX4's EV accepts
+            time_usec=0, frame_id=Odometry.MavFrame.LOCAL_FRD, position_body=PositionBody(y, x, -z),
+            q=Quaternion(*q), speed_body=SpeedBody(*(float(v) for v in v_frd)),
             angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan), pose_covariance=nan,
-            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.MOCAP, quality_percent=100))
+            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.VISION, quality_percent=100))
 
     def _on_command(self, name: str, args: dict) -> tuple[bool, str]:
         """Runs without the node lock: waits (up to 5 s) for the worker to get the vehicle's answer."""
