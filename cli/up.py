@@ -7,6 +7,7 @@ import os
 from runtime.bus import DEFAULT_HUB, SECURE_HUB
 from runtime.graph import ROLES
 from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
+from sim.px4_sitl import OFFBOARD_UDP_PORT, SIM_TCP_PORT
 
 LOOP_ROLES = ("hub", "source", "estimator", "controller", "px4_gateway")  # what a late sample waits for
 SHARED_ROLES = ("estimator", "controller", "recorder")  # --process-per-role: one process for every vehicle
@@ -47,9 +48,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--pathway", default=est.pathway, choices=PATHWAYS)
     p.add_argument("--name", action="append", default=None, dest="names",
                    help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
-    p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink"),
-                   help="how setpoints reach the vehicle: direct (the sim source applies them) or mavlink (the sim "
-                        "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK)")
+    p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink", "px4"),
+                   help="how setpoints reach the vehicle: direct (the sim source applies them), mavlink (the sim "
+                        "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK) or px4 (real PX4 "
+                        "SITL, built by `make px4`, flies the sim as its simulator; the px4_gateway flies PX4)")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
@@ -105,8 +107,11 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     elif role == "trainer":
         specific = ["--registry", args.registry, "--recordings-dir", args.recordings_dir]
     elif role == "px4_gateway":
-        specific = ["--mavlink", f"udpin://127.0.0.1:{args.mavlink_port + index}", "--forward-sources", "sim,mocap"]
-    if role == "source" and args.vehicle == "mavlink":
+        port = (OFFBOARD_UDP_PORT if args.vehicle == "px4" else args.mavlink_port) + index
+        specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
+    if role == "source" and args.vehicle == "px4":  # PX4 SITL instance `index` connects to 4560 + index
+        specific += ["--link", "px4", "--px4-port", str(SIM_TCP_PORT + index), "--start", "ground"]
+    elif role == "source" and args.vehicle == "mavlink":
         specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
         if args.mavlink_log:
             specific += ["--mavlink-log", args.mavlink_log if index == 0 else f"{args.mavlink_log}.{vehicle}"]
@@ -144,11 +149,11 @@ def check_credentials(args, roles) -> str:
 
 def role_enabled(args, role) -> bool:
     """Whether ``neso up`` starts ``role``: always, or when its ``enabled_by`` option is set
-    (``mavlink_vehicle`` is derived from ``--vehicle mavlink``)."""
+    (``mavlink_vehicle`` is derived from ``--vehicle mavlink`` or ``px4``)."""
     if not role.enabled_by:
         return True
     if role.enabled_by == "mavlink_vehicle":
-        return args.vehicle == "mavlink"
+        return args.vehicle in ("mavlink", "px4")
     return bool(getattr(args, role.enabled_by))
 
 
@@ -212,15 +217,33 @@ def build_specs(args) -> list[ProcessSpec]:
             finishes = role.name == "source" and args.duration > 0
             specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes,
                                      cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
+            if role.name == "source" and args.vehicle == "px4":  # the autopilot: no bus role, a process of the loop
+                specs.append(ProcessSpec("px4" if len(vehicles) == 1 else f"{vehicle}/px4", px4_argv(i, vehicle),
+                                         cpus=loop_cpus))
     return specs
+
+
+def px4_argv(index: int, vehicle: str) -> tuple[str, ...]:
+    """``neso px4`` for vehicle ``index``: instance ``index``, a working folder per vehicle, emptied at each
+    (re)start so PX4 boots fresh (its .ulg logs stay there until the next)."""
+    import tempfile
+
+    workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{vehicle}")
+    return python_module_argv("cli.main", "px4", "--instance", str(index), "--workdir", workdir)
 
 
 def run(args) -> int:
     vehicles = args.names or ["uav1"]
-    if args.lockstep and args.vehicle == "mavlink":
-        print("neso up: --vehicle mavlink runs in real time only (MAVSDK and the MAVLink link keep their own clock)",
-              flush=True)
+    if args.lockstep and args.vehicle in ("mavlink", "px4"):
+        print(f"neso up: --vehicle {args.vehicle} runs in real time only (MAVSDK and the MAVLink link keep their own "
+              "clock)", flush=True)
         return 2
+    if args.vehicle == "px4":
+        from sim.px4_sitl import missing_px4
+
+        if missing_px4():
+            print(f"neso up: {missing_px4()}", flush=True)
+            return 2
     problem = check_credentials(args, [r for r in ROLES if role_enabled(args, r)])
     if problem:
         print(f"neso up: {problem}", flush=True)
