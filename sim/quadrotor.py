@@ -461,8 +461,11 @@ class QuadrotorSim:
     @property
     def specific_force_body_flu_mps2(self) -> np.ndarray:
         """What an accelerometer on the body origin measures over the last physics step (3,), body
-        FLU, m/s²: R^T (a - g), contact forces included (at rest on the ground: (0, 0, +9.81))."""
+        FLU, m/s²: R^T (a - g), contact forces included (at rest on the ground: (0, 0, +9.81)). Once
+        ``crashed`` or ``diverged`` the state is frozen at rest: gravity alone."""
         r = _rot_from_quat(*self._q)
+        if self._crashed or self._diverged:
+            return r.T @ np.array([0.0, 0.0, GRAVITY_MPS2])
         return r.T @ np.array([self._acc[0], self._acc[1], self._acc[2] + GRAVITY_MPS2])
 
     @property
