@@ -232,7 +232,8 @@ class Px4Link:
         self.config = config
         self.core = GatewayCore(config)
         self.tele = {"armed": False, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
-                     "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0}
+                     "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0,
+                     "autopilot": "", "status_text": ""}
         self.system = self.action = self.offboard = self.mocap = None
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.actions: queue.Queue = queue.Queue()
@@ -291,9 +292,31 @@ class Px4Link:
             pos_ned=(v.position.north_m, v.position.east_m, v.position.down_m),
             vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
         tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
+        tele.subscribe_status_text(self._on_status_text)
+        threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         self.telemetry = tele
         self.system = system
         self.node.event("info", f"connected to autopilot system {system.get_system_id()} on {self.config.mavlink}")
+
+    def _on_status_text(self, v, _) -> None:
+        """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
+        text = f"{v.type.name}: {v.text.strip()}"[:160]
+        self.tele["status_text"] = text
+        self.node.log(f"vehicle says {text}")
+
+    def _ask_version(self, system) -> None:
+        """The firmware's version (AUTOPILOT_VERSION through MAVSDK's Info; PX4 answers it, a vehicle that
+        does not leaves it unknown)."""
+        from mavsdk.plugins.info import Info
+
+        try:
+            v = Info(system).get_version()
+        except Exception as exc:  # InfoError: the vehicle did not answer
+            self.node.log(f"the vehicle's version is unknown: {type(exc).__name__}: {exc}")
+            return
+        git = (v.flight_sw_git_hash or "")[:7]
+        self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
+        self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
     # -- bus inputs (under the node lock; never block) ----------------------------------------
     def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
@@ -408,7 +431,7 @@ class Px4Link:
             armed=t["armed"], in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
             yaw_rad=yaw, pos_enu_m=[e, n, -d], vel_enu_mps=[ve, vn, -vd], battery_v=min(max(volts, 0.0), 100.0),
             battery_remaining=min(max(remaining, -1.0), 1.0), hover_thrust_norm=min(max(hover, 0.0), 1.0),
-            setpoint_age_s=age, failsafe=failsafe)
+            setpoint_age_s=age, failsafe=failsafe, autopilot=t["autopilot"][:64], status_text=t["status_text"])
 
     def _drain_events(self) -> None:
         while self.core.events:

@@ -4,6 +4,7 @@ in tests/px4/."""
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 import stat
 import subprocess
 
@@ -100,3 +101,16 @@ def test_up_with_px4_refuses_lockstep_in_one_line(capsys):
 
     assert run(build_parser().parse_args(["up", "--vehicle", "px4", "--lockstep"])) == 2
     assert "real time only" in capsys.readouterr().out
+
+
+def test_the_dashboard_shows_px4s_version_and_its_own_words():
+    from dashboard.model import VehicleModel
+    from dashboard.text import vehicle_markdown
+    from tests.helpers import EXAMPLES
+
+    tel = next(m for m in EXAMPLES if type(m).__name__ == "TelemetryMsg")
+    v = VehicleModel("uav1")
+    v.ingest("telemetry", replace(tel, autopilot="PX4 v1.16.0 6ea3539",
+                                  status_text="CRITICAL: Arming denied: Resolve system health failures first"), 1.0)
+    text = vehicle_markdown(v)
+    assert "PX4 v1.16.0 6ea3539" in text and "**PX4 says**: CRITICAL: Arming denied" in text
