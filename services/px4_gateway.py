@@ -17,7 +17,9 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
   ``stale_states`` states arrived unanswered (the controller is gone, not the whole machine
   stalled), or ``stale_max_s`` without a setpoint whatever the states do → command hold;
   ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
-  Setpoints coming back (a restarted controller) do not resume offboard by themselves. PX4's own offboard-loss failsafe stays the last line.
+  Setpoints coming back (a restarted controller) do not resume offboard by themselves, and setpoints reach the
+  vehicle only while it is disarmed or in offboard (real PX4 returns to offboard by itself when they stream again
+  after its own failsafe). PX4's own offboard-loss failsafe stays the last line.
 
 The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
 companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
@@ -231,7 +233,7 @@ class Px4Link:
         self.node = node
         self.config = config
         self.core = GatewayCore(config)
-        self.tele = {"armed": False, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
+        self.tele = {"armed": None, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
                      "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0,
                      "autopilot": "", "status_text": ""}
         self.system = self.action = self.offboard = self.mocap = None
@@ -262,7 +264,8 @@ class Px4Link:
                     continue
                 done(self._do(what))
         finally:
-            self.system = None
+            with node.lock:  # no bus handler may reach a MAVSDK plugin once it is destroyed
+                self.system = self.action = self.offboard = self.mocap = None
             self.mavsdk.destroy()
 
     def _connect(self) -> None:
@@ -293,6 +296,9 @@ class Px4Link:
             vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
         tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
         tele.subscribe_status_text(self._on_status_text)
+        # MAVSDK calls a subscriber on a change only: the state the first heartbeat brought (a restarted gateway
+        # may find the vehicle armed in a mode of its own, see _may_stream)
+        t.update(armed=bool(tele.armed()), mode=tele.flight_mode().name)
         threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         self.telemetry = tele
         self.system = system
@@ -314,7 +320,11 @@ class Px4Link:
         except Exception as exc:  # InfoError: the vehicle did not answer
             self.node.log(f"the vehicle's version is unknown: {type(exc).__name__}: {exc}")
             return
-        git = (v.flight_sw_git_hash or "")[:7]
+        raw = v.flight_sw_git_hash or ""
+        git = raw[:7] if raw.strip("0") else ""  # MAVSDK gives zeros for a vehicle that never answered
+        if not (v.flight_sw_major or v.flight_sw_minor or v.flight_sw_patch or git):
+            self.node.log("the vehicle's version is unknown: it did not report one")
+            return
         self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
@@ -325,9 +335,19 @@ class Px4Link:
             from mavsdk.plugins.offboard import Attitude
 
             self.last_attitude = Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm)
-            self.offboard.set_attitude(self.last_attitude)
+            if self._may_stream():
+                self.offboard.set_attitude(self.last_attitude)
             self.node.stats.output(time.monotonic() - received_s)
         self._drain_events()
+
+    def _may_stream(self) -> bool:
+        """Setpoints go to the vehicle while it is known to be disarmed (ready for an offboard start) or is in
+        offboard; never while it is armed in a mode of its own (its failsafe, an operator's hold or land) or its
+        state is not known yet (a restarted gateway). Real PX4 ends an offboard-loss failsafe and returns to
+        offboard as soon as setpoints stream again (measured with PX4 v1.16 SITL: a restarted gateway's stream
+        took it back to offboard mid-landing, where the controller's estimate had wound up during PX4's descent,
+        and it flew off 5.8 m and crashed); only the operator's ``offboard_start`` streams again then."""
+        return self.tele["armed"] is False or self.tele["mode"] == "OFFBOARD"
 
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
@@ -428,7 +448,7 @@ class Px4Link:
         remaining = t["battery"] if math.isfinite(t["battery"]) else -1.0
         return TelemetryMsg.validate(
             stamp_s=time.monotonic(), connected=self.system is not None and self.system.is_connected(),
-            armed=t["armed"], in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
+            armed=bool(t["armed"]), in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
             yaw_rad=yaw, pos_enu_m=[e, n, -d], vel_enu_mps=[ve, vn, -vd], battery_v=min(max(volts, 0.0), 100.0),
             battery_remaining=min(max(remaining, -1.0), 1.0), hover_thrust_norm=min(max(hover, 0.0), 1.0),
             setpoint_age_s=age, failsafe=failsafe, autopilot=t["autopilot"][:64], status_text=t["status_text"])
