@@ -52,6 +52,9 @@ def add_parser(subparsers) -> None:
                    help="how setpoints reach the vehicle: direct (the sim source applies them), mavlink (the sim "
                         "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK) or px4 (real PX4 "
                         "SITL, built by `make px4`, flies the sim as its simulator; the px4_gateway flies PX4)")
+    p.add_argument("--px4-instance", type=int, default=0, choices=range(10), metavar="0-9",
+                   help="--vehicle px4: PX4 SITL instance of the first vehicle (the next: +1, …); its ports are 4560, 14540, "
+                        "14580, 18570 + instance")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
@@ -107,10 +110,10 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     elif role == "trainer":
         specific = ["--registry", args.registry, "--recordings-dir", args.recordings_dir]
     elif role == "px4_gateway":
-        port = (OFFBOARD_UDP_PORT if args.vehicle == "px4" else args.mavlink_port) + index
+        port = OFFBOARD_UDP_PORT + args.px4_instance + index if args.vehicle == "px4" else args.mavlink_port + index
         specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
     if role == "source" and args.vehicle == "px4":  # PX4 SITL instance `index` connects to 4560 + index
-        specific += ["--link", "px4", "--px4-port", str(SIM_TCP_PORT + index), "--start", "ground"]
+        specific += ["--link", "px4", "--px4-port", str(SIM_TCP_PORT + args.px4_instance + index), "--start", "ground"]
     elif role == "source" and args.vehicle == "mavlink":
         specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
         if args.mavlink_log:
@@ -218,18 +221,19 @@ def build_specs(args) -> list[ProcessSpec]:
             specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes,
                                      cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             if role.name == "source" and args.vehicle == "px4":  # the autopilot: no bus role, a process of the loop
-                specs.append(ProcessSpec("px4" if len(vehicles) == 1 else f"{vehicle}/px4", px4_argv(i, vehicle),
+                specs.append(ProcessSpec("px4" if len(vehicles) == 1 else f"{vehicle}/px4",
+                                         px4_argv(args.px4_instance + i, vehicle),
                                          cpus=loop_cpus))
     return specs
 
 
-def px4_argv(index: int, vehicle: str) -> tuple[str, ...]:
-    """``neso px4`` for vehicle ``index``: instance ``index``, a working folder per vehicle, emptied at each
+def px4_argv(instance: int, vehicle: str) -> tuple[str, ...]:
+    """``neso px4`` as PX4 SITL ``instance`` for ``vehicle``, in a working folder of its own, emptied at each
     (re)start so PX4 boots fresh (its .ulg logs stay there until the next)."""
     import tempfile
 
-    workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{vehicle}")
-    return python_module_argv("cli.main", "px4", "--instance", str(index), "--workdir", workdir)
+    workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{instance}-{vehicle}")
+    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir)
 
 
 def run(args) -> int:

@@ -145,7 +145,7 @@ class AutopilotInTheLoop:
     (PX4 wants a clock that never starts at 0).
 
     Counts: ``exchanges`` (sensor messages answered), ``unanswered`` (sent while no autopilot answered:
-    motors off), ``airborne`` (answered while off the ground) and ``saturated`` (of those, how many had some
+    motors off), ``airborne`` (answered while flying: off the ground, not crashed) and ``saturated`` (of those, how many had some
     motor output within 1 % of 0 or 1): the saturation figure of issue 24."""
 
     def __init__(self, sim: QuadrotorSim, exchange: Exchange, sensors: HilSensors, *,
@@ -181,7 +181,7 @@ class AutopilotInTheLoop:
             else:
                 self.exchanges += 1
                 motors = tuple(float(outputs[i]) for i in range(4))
-                if not sim.truth.on_ground:
+                if not (sim.truth.on_ground or sim.crashed or sim.diverged):
                     self.airborne += 1
                     self.saturated += any(u <= 0.01 or u >= 0.99 for u in motors)
             self.motors = motors

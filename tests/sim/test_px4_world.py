@@ -109,13 +109,22 @@ def test_the_sensors_at_rest_read_gravity_upwards_in_frd_and_the_home_pressure()
 
 
 def test_a_hard_touch_down_clips_the_accelerometer_at_its_range():
-    sim = calm_world(z_m=0.3)
+    sim = calm_world(z_m=0.09)  # 4 cm above the feet: touch-down at 0.89 m/s, under the world's 1 m/s crash speed
     sensors = HilSensors(seed=1)
     peak = 0.0
     for _ in range(200):
         sim.step_rotors((0.0,) * 4, 2)  # motors off: it falls and hits the floor
         peak = max(peak, np.abs(sensors.sample(sim, 0).acc_frd_mps2).max())
-    assert peak == pytest.approx(HilSensorConfig().accel_range_mps2)
+    assert not sim.crashed and peak == pytest.approx(HilSensorConfig().accel_range_mps2)
+    assert sim.specific_force_body_flu_mps2[2] == pytest.approx(GRAVITY_MPS2, abs=0.01)  # at rest after it
+
+
+def test_a_crashed_world_reads_gravity_not_its_impact():
+    sim = calm_world(z_m=0.5)
+    for _ in range(200):
+        sim.step_rotors((0.0,) * 4, 2)  # falls at 2.8 m/s: a crash, the state freezes
+    assert sim.crashed and sim.specific_force_body_flu_mps2 == pytest.approx(
+        sim.truth.world_from_body.T @ np.array([0.0, 0.0, GRAVITY_MPS2]))
 
 
 def test_the_autopilot_in_the_loop_drives_the_world_rotor_by_px4_motor_and_counts_what_it_gets():

@@ -94,6 +94,9 @@ def test_up_with_px4_runs_px4_the_world_as_its_simulator_and_the_gateway_per_veh
         assert gateway[gateway.index("--mavlink") + 1] == f"udpin://127.0.0.1:{14540 + i}"
         assert "sim" in gateway[gateway.index("--forward-sources") + 1].split(",")
     assert "px4" not in [s.name for s in build_specs(build_parser().parse_args(["up", "--vehicle", "mavlink"]))]
+    shifted = {s.name: s.argv for s in build_specs(build_parser().parse_args(["up", "--vehicle", "px4", "--px4-instance", "3"]))}
+    assert last_value(shifted["px4"], "--instance") == "3" and last_value(shifted["source"], "--px4-port") == "4563"
+    assert last_value(shifted["px4_gateway"], "--mavlink") == "udpin://127.0.0.1:14543"
 
 
 def test_up_with_px4_refuses_lockstep_in_one_line(capsys):
