@@ -145,8 +145,8 @@ class AutopilotInTheLoop:
     (PX4 wants a clock that never starts at 0).
 
     Counts: ``exchanges`` (sensor messages answered), ``unanswered`` (sent while no autopilot answered:
-    motors off), ``airborne`` (answered while flying: off the ground, not crashed) and ``saturated`` (of those, how many had some
-    motor output within 1 % of 0 or 1): the saturation figure of issue 24."""
+    motors off), ``airborne`` (answered while flying: off the ground, not crashed) and ``saturated`` (of those, how
+    many had some motor output within 1 % of 0 or 1): the saturation figure of issue 24."""
 
     def __init__(self, sim: QuadrotorSim, exchange: Exchange, sensors: HilSensors, *,
                  time_offset_us: int = 1_000_000) -> None:
