@@ -18,8 +18,9 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
   stalled), or ``stale_max_s`` without a setpoint whatever the states do → command hold;
   ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
   Setpoints coming back (a restarted controller) do not resume offboard by themselves, and setpoints reach the
-  vehicle only while it is disarmed or in offboard (real PX4 returns to offboard by itself when they stream again
-  after its own failsafe). PX4's own offboard-loss failsafe stays the last line.
+  vehicle only in offboard or while it is not known armed and not in a mode of its own (real PX4 returns to
+  offboard by itself when they stream again after its own failsafe). PX4's own offboard-loss failsafe stays the
+  last line.
 
 The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
 companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
@@ -45,6 +46,9 @@ from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
 from runtime.options import add_options, comma_list, config_from_options, option
 from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
 
+# modes in which the vehicle flies (or waits) on its own, or not reported yet: setpoints are withheld (see _may_stream)
+VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
+                     "ALTCTL", "STABILIZED", "MANUAL", "ACRO", "RATTITUDE")
 COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
 
 
@@ -296,9 +300,7 @@ class Px4Link:
             vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
         tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
         tele.subscribe_status_text(self._on_status_text)
-        # MAVSDK calls a subscriber on a change only: the state the first heartbeat brought (a restarted gateway
-        # may find the vehicle armed in a mode of its own, see _may_stream)
-        t.update(armed=bool(tele.armed()), mode=tele.flight_mode().name)
+        t["mode"] = tele.flight_mode().name  # MAVSDK calls subscribers on a change only; its mode here is the vehicle's
         threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         self.telemetry = tele
         self.system = system
@@ -341,13 +343,15 @@ class Px4Link:
         self._drain_events()
 
     def _may_stream(self) -> bool:
-        """Setpoints go to the vehicle while it is known to be disarmed (ready for an offboard start) or is in
-        offboard; never while it is armed in a mode of its own (its failsafe, an operator's hold or land) or its
-        state is not known yet (a restarted gateway). Real PX4 ends an offboard-loss failsafe and returns to
-        offboard as soon as setpoints stream again (measured with PX4 v1.16 SITL: a restarted gateway's stream
-        took it back to offboard mid-landing, where the controller's estimate had wound up during PX4's descent,
-        and it flew off 5.8 m and crashed); only the operator's ``offboard_start`` streams again then."""
-        return self.tele["armed"] is False or self.tele["mode"] == "OFFBOARD"
+        """Setpoints go to the vehicle in offboard, or while it is not known to be armed and its mode is known and
+        not one of its own (:data:`VEHICLE_OWN_MODES`: its failsafe, an operator's hold or land); the operator's
+        ``offboard_start`` sends one itself. Real PX4 ends an offboard-loss failsafe and returns to offboard as
+        soon as setpoints stream again (measured with PX4 v1.16 SITL: a restarted gateway's stream took it back
+        to offboard mid-landing, where the controller's estimate had wound up during PX4's descent, and it flew
+        off 5.8 m and crashed). The mode decides, not the armed flag alone: MAVSDK reports armed on a change from False only,
+        and its ``armed()`` read at connection said False for an armed PX4 in Land."""
+        mode = self.tele["mode"]
+        return mode == "OFFBOARD" or (self.tele["armed"] is not True and mode not in VEHICLE_OWN_MODES)
 
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")

@@ -10,7 +10,8 @@ from tests.busutil import role_pid, wait_for
 
 
 def test_the_gateway_killed_mid_hover_px4s_own_failsafe_within_com_of_loss_t(flight):
-    """kill -9 of the gateway mid-hover: its setpoint stream stops; PX4's own offboard-loss action (COM_OF_LOSS_T 1 s, then COM_OBL_RC_ACT: Land, sim/px4/neso_quad.params) within 1.5 s.
+    """kill -9 of the gateway mid-hover: its setpoint stream stops; PX4's own offboard-loss action (COM_OF_LOSS_T
+    1 s, then COM_OBL_RC_ACT: Land, sim/px4/neso_quad.params) within 1.5 s.
     What follows is printed: the modes the restarted gateway sees and where the vehicle ends."""
     wait_for("PX4 says it is ready for takeoff", lambda: flight.log("Ready for takeoff"), 60)
     wait_for("offboard accepted", lambda: flight.cmd("px4_gateway", "offboard_start").ok, 30, 1.0)
