@@ -9,9 +9,14 @@ STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 DEMO_S ?= 0
 
-.PHONY: setup demo demo-tdr test test-fast bench experiment clean
+.PHONY: setup px4 demo demo-tdr test test-fast bench experiment clean
 
-setup: $(STAMP) $(CHROMIUM)
+setup: $(STAMP) $(CHROMIUM) px4
+
+# Real PX4 v1.16.0 SITL, built once into ~/.cache/neso/px4-v1.16.0 from $$PX4_SRC or ../shared/px4/ (a stamp makes
+# it a no-op after; ~4 min of every core the first time; one line and no build when neither source is there).
+px4:
+	@sim/px4/build.sh
 
 # Debian's chromium (Playwright drives it; never a downloaded browser build): as root directly,
 # else through sudo, else one line saying what to run.

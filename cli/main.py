@@ -20,6 +20,7 @@ SUBCOMMANDS = {
     "networks": "cli.networks",
     "demo": "cli.demo",
     "secure": "cli.secure",
+    "px4": "cli.px4",
 }
 
 

@@ -7,6 +7,7 @@ import os
 from runtime.bus import DEFAULT_HUB, SECURE_HUB
 from runtime.graph import ROLES
 from runtime.launcher import ProcessSpec, Supervisor, python_module_argv
+from sim.px4_sitl import OFFBOARD_UDP_PORT, SIM_TCP_PORT
 
 LOOP_ROLES = ("hub", "source", "estimator", "controller", "px4_gateway")  # what a late sample waits for
 SHARED_ROLES = ("estimator", "controller", "recorder")  # --process-per-role: one process for every vehicle
@@ -47,9 +48,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--pathway", default=est.pathway, choices=PATHWAYS)
     p.add_argument("--name", action="append", default=None, dest="names",
                    help="vehicle name, repeatable: each gets its own services under neso/<name>/ (default uav1)")
-    p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink"),
-                   help="how setpoints reach the vehicle: direct (the sim source applies them) or mavlink (the sim "
-                        "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK)")
+    p.add_argument("--vehicle", default="direct", choices=("direct", "mavlink", "px4"),
+                   help="how setpoints reach the vehicle: direct (the sim source applies them), mavlink (the sim "
+                        "is a PX4 on a MAVLink UDP port, flown by the px4_gateway through MAVSDK) or px4 (real PX4 "
+                        "SITL, built by `make px4`, flies the sim as its simulator; the px4_gateway flies PX4)")
+    p.add_argument("--px4-instance", type=int, default=0, choices=range(10), metavar="0-9",
+                   help="--vehicle px4: PX4 SITL instance of the first vehicle (the next: +1, …); its ports are 4560, 14540, "
+                        "14580, 18570 + instance")
     p.add_argument("--mocap", default="direct", choices=("direct", "natnet"),
                    help="how the simulated world's motion capture reaches the source: direct, or natnet (a simulated "
                         "Motive streams NatNet on loopback, read by the motioncapture optitrack client as in a lab)")
@@ -115,12 +120,15 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     elif role == "trainer":
         specific = ["--registry", args.registry, "--recordings-dir", args.recordings_dir]
     elif role == "px4_gateway":
-        specific = ["--mavlink", f"udpin://127.0.0.1:{args.mavlink_port + index}", "--forward-sources", "sim,mocap"]
+        port = OFFBOARD_UDP_PORT + args.px4_instance + index if args.vehicle == "px4" else args.mavlink_port + index
+        specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
     if role == "source" and args.mocap == "natnet":
         specific += ["--mocap-stream", "natnet", "--natnet-port", str(args.natnet_port + 2 * index),
                      "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost", args.natnet_lost,
                      "--natnet-rate", str(args.natnet_rate)]
-    if role == "source" and args.vehicle == "mavlink":
+    if role == "source" and args.vehicle == "px4":  # PX4 SITL instance `index` connects to 4560 + index
+        specific += ["--link", "px4", "--px4-port", str(SIM_TCP_PORT + args.px4_instance + index), "--start", "ground"]
+    elif role == "source" and args.vehicle == "mavlink":
         specific += ["--link", "mavlink", "--mavlink-out", f"udpout:127.0.0.1:{args.mavlink_port + index}"]
         if args.mavlink_log:
             specific += ["--mavlink-log", args.mavlink_log if index == 0 else f"{args.mavlink_log}.{vehicle}"]
@@ -158,11 +166,11 @@ def check_credentials(args, roles) -> str:
 
 def role_enabled(args, role) -> bool:
     """Whether ``neso up`` starts ``role``: always, or when its ``enabled_by`` option is set
-    (``mavlink_vehicle`` is derived from ``--vehicle mavlink``)."""
+    (``mavlink_vehicle`` is derived from ``--vehicle mavlink`` or ``px4``)."""
     if not role.enabled_by:
         return True
     if role.enabled_by == "mavlink_vehicle":
-        return args.vehicle == "mavlink"
+        return args.vehicle in ("mavlink", "px4")
     return bool(getattr(args, role.enabled_by))
 
 
@@ -226,19 +234,38 @@ def build_specs(args) -> list[ProcessSpec]:
             finishes = role.name == "source" and args.duration > 0
             specs.append(ProcessSpec(name, service_argv(role.name, vehicle, args, i), finishes=finishes,
                                      cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
+            if role.name == "source" and args.vehicle == "px4":  # the autopilot: no bus role, a process of the loop
+                specs.append(ProcessSpec("px4" if len(vehicles) == 1 else f"{vehicle}/px4",
+                                         px4_argv(args.px4_instance + i, vehicle),
+                                         cpus=loop_cpus))
     return specs
+
+
+def px4_argv(instance: int, vehicle: str) -> tuple[str, ...]:
+    """``neso px4`` as PX4 SITL ``instance`` for ``vehicle``, in a working folder of its own, emptied at each
+    (re)start so PX4 boots fresh (its .ulg logs stay there until the next)."""
+    import tempfile
+
+    workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{instance}-{vehicle}")
+    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir)
 
 
 def run(args) -> int:
     vehicles = args.names or ["uav1"]
-    if args.lockstep and args.vehicle == "mavlink":
-        print("neso up: --vehicle mavlink runs in real time only (MAVSDK and the MAVLink link keep their own clock)",
-              flush=True)
+    if args.lockstep and args.vehicle in ("mavlink", "px4"):
+        print(f"neso up: --vehicle {args.vehicle} runs in real time only (MAVSDK and the MAVLink link keep their own "
+              "clock)", flush=True)
         return 2
-    if args.mocap == "natnet" and (args.lockstep or args.vehicle == "mavlink"):
+    if args.mocap == "natnet" and (args.lockstep or args.vehicle != "direct"):
         print("neso up: --mocap natnet runs in real time with --vehicle direct only (the stream keeps its own clock)",
               flush=True)
         return 2
+    if args.vehicle == "px4":
+        from sim.px4_sitl import missing_px4
+
+        if missing_px4():
+            print(f"neso up: {missing_px4()}", flush=True)
+            return 2
     problem = check_credentials(args, [r for r in ROLES if role_enabled(args, r)])
     if problem:
         print(f"neso up: {problem}", flush=True)

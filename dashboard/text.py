@@ -128,7 +128,9 @@ def vehicle_markdown(v: VehicleModel) -> str:
         f"**Vehicle (PX4)**: {'ARMED' if tel.armed else 'disarmed'} · mode {tel.flight_mode} · "
         f"{'in air' if tel.in_air else 'on ground'} · battery {tel.battery_v:.2f} V "
         f"({fmt(tel.battery_remaining * 100 if tel.battery_remaining >= 0 else math.nan, '.0f')} %)"
-        + (f" · failsafe **{tel.failsafe}**" if tel.failsafe else ""))
+        + (f" · failsafe **{tel.failsafe}**" if tel.failsafe else "")
+        + (f" · {tel.autopilot}" if tel.autopilot else "")
+        + (f"\n\n**PX4 says**: {tel.status_text}" if tel.status_text else ""))
     rec_line = "**Recording**: " + (recording_text(v) if rec is None else
                                     f"{recording_text(v)} · flight `{rec.flight}` · {rec.size_bytes / 1e6:.1f} MB · "
                                     f"dropped {rec.dropped}")

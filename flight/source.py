@@ -97,9 +97,11 @@ class SourceConfig:
                                        help="services whose liveliness a lockstep run waits for before the first sample")
     lockstep_resend_s: float = 1.0
     mocap: MocapConfig = option(default_factory=MocapConfig, nested=True)
-    link: str = option("direct", choices=("direct", "mavlink"),
-                       help="how setpoints reach the simulated vehicle: direct (bus setpoints) or mavlink (it presents "
-                            "itself as a PX4 on --mavlink-out; the px4_gateway flies it, sim/mavlink_vehicle.py)")
+    link: str = option("direct", choices=("direct", "mavlink", "px4"),
+                       help="how setpoints reach the simulated vehicle: direct (bus setpoints), mavlink (it presents "
+                            "itself as a PX4 on --mavlink-out; the px4_gateway flies it, sim/mavlink_vehicle.py) or px4 "
+                            "(it is real PX4 SITL's simulator on TCP --px4-port; PX4 flies it, sim/px4_hil.py)")
+    px4_port: int = option(4560, help="--link px4: the TCP port PX4 SITL connects to (4560 + its instance)")
     mavlink_out: str = option("udpout:127.0.0.1:14540",
                               help="where the simulated PX4 sends its MAVLink (the gateway's udpin address)")
     mavlink_log: str = option("", help="JSON-lines log of every MAVLink command/setpoint received")

@@ -476,7 +476,9 @@ class TelemetryMsg(Message):
     ``pos_enu_m``/``vel_enu_mps``: PX4's own position estimate; ``battery_remaining``: 0–1, −1
     unknown; ``hover_thrust_norm``: the gateway's learned hover thrust (0–1); ``setpoint_age_s``:
     seconds since the last controller setpoint (−1: none yet); ``failsafe``: ``""``, ``hold`` or
-    ``land`` when the gateway acted on its own."""
+    ``land`` when the gateway acted on its own; ``autopilot``: the vehicle's firmware and version as it
+    reports them (``PX4 v1.16.0 6ea3539``; ``""`` until known); ``status_text``: the vehicle's newest own
+    message (STATUSTEXT), its severity first (``WARNING: Arming denied: …``)."""
 
     TYPE: ClassVar[str] = "telemetry"
     stamp_s: float = f(_STAMP)
@@ -494,6 +496,8 @@ class TelemetryMsg(Message):
     hover_thrust_norm: float = f(_number(0.0, 1.0))
     setpoint_age_s: float = f(_number(-1.0))
     failsafe: str = f(_text(("", "hold", "land")))
+    autopilot: str = f(_text(max_len=64), default="")
+    status_text: str = f(_text(max_len=160), default="")
 
 
 @dataclass(frozen=True, slots=True)

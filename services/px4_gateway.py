@@ -17,7 +17,10 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
   ``stale_states`` states arrived unanswered (the controller is gone, not the whole machine
   stalled), or ``stale_max_s`` without a setpoint whatever the states do → command hold;
   ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
-  Setpoints coming back (a restarted controller) do not resume offboard by themselves. PX4's own offboard-loss failsafe stays the last line.
+  Setpoints coming back (a restarted controller) do not resume offboard by themselves, and setpoints reach the
+  vehicle only in offboard or while it is not known armed and not in a mode of its own (real PX4 returns to
+  offboard by itself when they stream again after its own failsafe). PX4's own offboard-loss failsafe stays the
+  last line.
 
 The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
 companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
@@ -35,11 +38,17 @@ import threading
 import time
 from dataclasses import dataclass
 
-from neso.frames import attitude_enu_from_ned, attitude_ned_from_enu, quat_ned_from_enu_euler, tilt_rad
+import numpy as np
+
+from neso.frames import (NED_FROM_ENU, attitude_enu_from_ned, attitude_ned_from_enu, matrix_from_quat,
+                         quat_ned_from_enu_euler, tilt_rad)
 from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
 from runtime.options import add_options, comma_list, config_from_options, option
 from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
 
+# modes in which the vehicle flies (or waits) on its own, or not reported yet: setpoints are withheld (see _may_stream)
+VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
+                     "ALTCTL", "STABILIZED", "MANUAL", "ACRO", "RATTITUDE")
 COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
 
 
@@ -228,8 +237,9 @@ class Px4Link:
         self.node = node
         self.config = config
         self.core = GatewayCore(config)
-        self.tele = {"armed": False, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
-                     "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0}
+        self.tele = {"armed": None, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
+                     "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0,
+                     "autopilot": "", "status_text": ""}
         self.system = self.action = self.offboard = self.mocap = None
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.actions: queue.Queue = queue.Queue()
@@ -258,7 +268,8 @@ class Px4Link:
                     continue
                 done(self._do(what))
         finally:
-            self.system = None
+            with node.lock:  # no bus handler may reach a MAVSDK plugin once it is destroyed
+                self.system = self.action = self.offboard = self.mocap = None
             self.mavsdk.destroy()
 
     def _connect(self) -> None:
@@ -288,9 +299,36 @@ class Px4Link:
             pos_ned=(v.position.north_m, v.position.east_m, v.position.down_m),
             vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
         tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
+        tele.subscribe_status_text(self._on_status_text)
+        t["mode"] = tele.flight_mode().name  # MAVSDK calls subscribers on a change only; its mode here is the vehicle's
+        threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         self.telemetry = tele
         self.system = system
         self.node.event("info", f"connected to autopilot system {system.get_system_id()} on {self.config.mavlink}")
+
+    def _on_status_text(self, v, _) -> None:
+        """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
+        text = f"{v.type.name}: {v.text.strip()}"[:160]
+        self.tele["status_text"] = text
+        self.node.log(f"vehicle says {text}")
+
+    def _ask_version(self, system) -> None:
+        """The firmware's version (AUTOPILOT_VERSION through MAVSDK's Info; PX4 answers it, a vehicle that
+        does not leaves it unknown)."""
+        from mavsdk.plugins.info import Info
+
+        try:
+            v = Info(system).get_version()
+        except Exception as exc:  # InfoError: the vehicle did not answer
+            self.node.log(f"the vehicle's version is unknown: {type(exc).__name__}: {exc}")
+            return
+        raw = v.flight_sw_git_hash or ""
+        git = raw[:7] if raw.strip("0") else ""  # MAVSDK gives zeros for a vehicle that never answered
+        if not (v.flight_sw_major or v.flight_sw_minor or v.flight_sw_patch or git):
+            self.node.log("the vehicle's version is unknown: it did not report one")
+            return
+        self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
+        self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
     # -- bus inputs (under the node lock; never block) ----------------------------------------
     def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
@@ -299,9 +337,21 @@ class Px4Link:
             from mavsdk.plugins.offboard import Attitude
 
             self.last_attitude = Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm)
-            self.offboard.set_attitude(self.last_attitude)
+            if self._may_stream():
+                self.offboard.set_attitude(self.last_attitude)
             self.node.stats.output(time.monotonic() - received_s)
         self._drain_events()
+
+    def _may_stream(self) -> bool:
+        """Setpoints go to the vehicle in offboard, or while it is not known to be armed and its mode is known and
+        not one of its own (:data:`VEHICLE_OWN_MODES`: its failsafe, an operator's hold or land); the operator's
+        ``offboard_start`` sends one itself. Real PX4 ends an offboard-loss failsafe and returns to offboard as
+        soon as setpoints stream again (measured with PX4 v1.16 SITL: a restarted gateway's stream took it back
+        to offboard mid-landing, where the controller's estimate had wound up during PX4's descent, and it flew
+        off 5.8 m and crashed). The mode decides, not the armed flag alone: MAVSDK reports armed on a change from False only,
+        and its ``armed()`` read at connection said False for an armed PX4 in Land."""
+        mode = self.tele["mode"]
+        return mode == "OFFBOARD" or (self.tele["armed"] is not True and mode not in VEHICLE_OWN_MODES)
 
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
@@ -310,18 +360,22 @@ class Px4Link:
         self._drain_events()
 
     def _forward_pose(self, msg: StateMsg) -> None:
+        """The state as external vision, in the form PX4 v1.16's EKF2 fuses (mavlink_receiver.cpp,
+        handle_message_odometry): estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which EKF2 does
+        not read), pose frame LOCAL_FRD (MOCAP_NED is not among the frames it accepts: the position arrives
+        as NaN), velocity in the body FRD frame (MAVSDK's child frame)."""
         from mavsdk.plugins.mocap import (AngularVelocityBody, Covariance, Odometry, PositionBody, Quaternion,
                                           SpeedBody)
 
         x, y, z = msg.pos_enu_m
-        vx, vy, vz = msg.vel_enu_mps
-        w, qx, qy, qz = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
+        q = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
+        v_frd = matrix_from_quat(q).T @ (NED_FROM_ENU @ np.asarray(msg.vel_enu_mps, dtype=float))
         nan = Covariance([math.nan])
         self.mocap.set_odometry(Odometry(
-            time_usec=0, frame_id=Odometry.MavFrame.MOCAP_NED, position_body=PositionBody(y, x, -z),
-            q=Quaternion(w, qx, qy, qz), speed_body=SpeedBody(vy, vx, -vz),  # NED velocity, as PX4's EV accepts
+            time_usec=0, frame_id=Odometry.MavFrame.LOCAL_FRD, position_body=PositionBody(y, x, -z),
+            q=Quaternion(*q), speed_body=SpeedBody(*(float(v) for v in v_frd)),
             angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan), pose_covariance=nan,
-            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.MOCAP, quality_percent=100))
+            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.VISION, quality_percent=100))
 
     def _on_command(self, name: str, args: dict) -> tuple[bool, str]:
         """Runs without the node lock: waits (up to 5 s) for the worker to get the vehicle's answer."""
@@ -398,10 +452,10 @@ class Px4Link:
         remaining = t["battery"] if math.isfinite(t["battery"]) else -1.0
         return TelemetryMsg.validate(
             stamp_s=time.monotonic(), connected=self.system is not None and self.system.is_connected(),
-            armed=t["armed"], in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
+            armed=bool(t["armed"]), in_air=t["in_air"], flight_mode=t["mode"].lower()[:32], roll_rad=roll, pitch_rad=pitch,
             yaw_rad=yaw, pos_enu_m=[e, n, -d], vel_enu_mps=[ve, vn, -vd], battery_v=min(max(volts, 0.0), 100.0),
             battery_remaining=min(max(remaining, -1.0), 1.0), hover_thrust_norm=min(max(hover, 0.0), 1.0),
-            setpoint_age_s=age, failsafe=failsafe)
+            setpoint_age_s=age, failsafe=failsafe, autopilot=t["autopilot"][:64], status_text=t["status_text"])
 
     def _drain_events(self) -> None:
         while self.core.events:

@@ -377,6 +377,8 @@ class Recorder:
             self._seen.setdefault("networks", set()).add(msg.network_id)
         elif channel == "truth":
             self._seen.setdefault("scenarios", set()).add(msg.scenario)
+        elif channel == "telemetry" and msg.autopilot:
+            self._seen.setdefault("autopilots", set()).add(msg.autopilot)
         elif channel == "params/estimator" and "lipschitz_bound" in msg.values:
             self._seen.setdefault("lipschitz_bounds", set()).add(msg.values["lipschitz_bound"])
 

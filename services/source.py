@@ -48,11 +48,20 @@ def run(args, bus) -> int:
         if config.lockstep:
             raise SystemExit("source: --link mavlink runs in real time only (MAVSDK streams on its own clock)")
         return run_node(node, lambda n: _run_sim_mavlink(n, config))
+    if config.link == "px4":
+        if config.lockstep:
+            raise SystemExit("source: --link px4 runs in real time only (PX4 and MAVSDK keep wall-clock timeouts)")
+        from services.px4_world import px4_in_the_loop
+
+        return run_node(node, lambda n: _run_sim(n, config, world=lambda sim: px4_in_the_loop(n, config, sim)))
     return run_node(node, lambda n: _run_sim(n, config))
 
 
-def _run_sim(node, config: SourceConfig) -> None:
+def _run_sim(node, config: SourceConfig, world=None) -> None:
+    """``world``: wraps the simulator of the flight (PX4 in the loop), None: the simulator as it is."""
     core = SimSource(config, clock=time.monotonic)
+    if world is not None:
+        core.sim = world(core.sim)
     put_state, put_truth = node.publisher("state"), node.publisher("truth")
     arrived = threading.Condition(node.lock)
     misses = [0]
@@ -77,8 +86,8 @@ def _run_sim(node, config: SourceConfig) -> None:
         wanted = args.get("name")
         if wanted not in SCENARIOS:
             return False, f"scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
-        if config.lockstep:
-            return False, "a lockstep flight cannot switch scenario (restart it)"
+        if config.lockstep or world is not None:
+            return False, f"a {'lockstep' if config.lockstep else 'PX4'} flight cannot switch scenario (restart it)"
         next_scenario[:] = [wanted]
         return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
 

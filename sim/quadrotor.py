@@ -85,6 +85,11 @@ class QuadrotorParams:
       rotors gives ~0.54 s^-1; blade-element corrections reduce it; 0.5 taken.
     - ``contact_height_m`` 0.05: height of the body origin (rotor plane) above the feet; the
       body origin cannot go below terrain + this. Assumed (landing gear / protective frame).
+    - ``rotor_time_constant_up_s`` 0.0125, ``rotor_time_constant_down_s`` 0.025: first-order lag of
+      one rotor's thrust to its command, spinning up / down; used only when an autopilot commands
+      each rotor (:meth:`QuadrotorSim.step_rotors`, PX4 in the loop), the built-in inner loop has its
+      own lags (``InnerLoopParams``). Source: the motor model of PX4's Gazebo Classic Iris
+      (PX4-SITL_gazebo-classic, models/iris: ``timeConstantUp`` 0.0125, ``timeConstantDown`` 0.025).
     """
 
     mass_kg: float = 1.05
@@ -97,6 +102,8 @@ class QuadrotorParams:
     battery_sag_per_min: float = 0.02
     drag_coeff_per_s: tuple[float, float, float] = (0.4, 0.4, 0.5)
     contact_height_m: float = 0.05
+    rotor_time_constant_up_s: float = 0.0125
+    rotor_time_constant_down_s: float = 0.025
 
     @property
     def hover_thrust_norm(self) -> float:
@@ -293,6 +300,8 @@ class _Physics(NamedTuple):
     k_h: float
     limits: bool
     f_min: float
+    c_up: float
+    c_dn: float
 
 
 class QuadrotorSim:
@@ -346,7 +355,8 @@ class QuadrotorSim:
             washout_weight=cfg.ground_effect_washout.weight, scale_drag=not isinstance(cfg.rotor_drag, ConstantRotorDrag),
             drag_factor=cfg.rotor_drag.factor, f_hover=0.25 * p.mass_kg * GRAVITY_MPS2,
             k_h=cfg.translational_lift.k_h_per_m(p.hover_induced_velocity_mps), limits=limits,
-            f_min=0.0 if limits else -math.inf)
+            f_min=0.0 if limits else -math.inf,
+            c_up=1.0 - math.exp(-dt / p.rotor_time_constant_up_s), c_dn=1.0 - math.exp(-dt / p.rotor_time_constant_down_s))
 
     # ------------------------------------------------------------------ public API
     def reset(self, *, pos_enu_m: tuple[float, float, float] | np.ndarray, yaw_rad: float = 0.0) -> StateMeasurement:
@@ -377,6 +387,8 @@ class QuadrotorSim:
         hover_norm = 0.0 if self._on_ground else p.hover_thrust_norm / self._level_ge_ratio(x, y, z, yaw_rad)
         self._thrust_act_n = hover_norm * p.max_thrust_n
         self._moment_act = [0.0, 0.0, 0.0]
+        self._rotor_cmd: tuple[float, float, float, float] | None = None  # per-rotor commands (step_rotors)
+        self._rotor_act = [0.25 * self._thrust_act_n] * 4  # each rotor's lagged thrust, N (step_rotors)
         self._active = (tuple(self._q), hover_norm)
         self._pending: deque[tuple[int, tuple[float, float, float, float], float]] = deque()
         self._cmd = (0.0, 0.0, float(yaw_rad), hover_norm)
@@ -417,8 +429,50 @@ class QuadrotorSim:
             self._pending.append((self._n + self._delay_ticks, _quat_from_euler_zyx(r, pi, ya), tn))
         else:
             self.rejected_setpoints += 1
+        self._rotor_cmd = None
         self._advance(self._n_sub)
         return self._measurement()
+
+    def step_rotors(self, rotor_cmd: tuple[float, float, float, float], n_steps: int) -> None:
+        """Advance ``n_steps`` physics steps with each rotor commanded directly, as an autopilot's
+        motor outputs do (PX4 in the loop): ``rotor_cmd`` is rotor i's thrust as a fraction 0–1 of its
+        maximum (``max_thrust_n`` / 4, times the battery factor), in the world's rotor order (0: front
+        left, 1: rear right, 2: front right, 3: rear left, body FLU; 0 and 1 turn clockwise seen from
+        above). Each rotor follows its command with the lags of ``QuadrotorParams`` and no transport
+        delay; the built-in inner loop and its setpoint are bypassed until :meth:`step` is called again.
+        A command that is not four finite numbers is rejected (``rejected_setpoints``; the last one is
+        held); values are clipped to [0, 1]."""
+        cmd = tuple(float(u) for u in rotor_cmd)
+        if len(cmd) == 4 and all(math.isfinite(u) for u in cmd):
+            self._rotor_cmd = tuple(0.0 if u < 0.0 else (1.0 if u > 1.0 else u) for u in cmd)
+        else:
+            self.rejected_setpoints += 1
+            if self._rotor_cmd is None:
+                self._rotor_cmd = (0.0, 0.0, 0.0, 0.0)
+        self._advance(n_steps)
+
+    def reference_setpoint(self, setpoint: AttitudeSetpoint) -> None:
+        """Take ``setpoint`` as the command the nominal model believes acts now (the reference of
+        ``TruthState.disturbance_acc_enu_mps2``) without flying it: with an autopilot in the loop
+        (:meth:`step_rotors`) the controller's setpoint goes to the autopilot, not to the world."""
+        r, pi, ya, tn = setpoint.roll_rad, setpoint.pitch_rad, setpoint.yaw_rad, setpoint.thrust_norm
+        if math.isfinite(r) and math.isfinite(pi) and math.isfinite(ya) and math.isfinite(tn):
+            self._cmd = (float(r), float(pi), float(ya), min(max(float(tn), self.config.params.min_thrust_norm), 1.0))
+
+    @property
+    def specific_force_body_flu_mps2(self) -> np.ndarray:
+        """What an accelerometer on the body origin measures over the last physics step (3,), body
+        FLU, m/s²: R^T (a - g), contact forces included (at rest on the ground: (0, 0, +9.81)). Once
+        ``crashed`` or ``diverged`` the state is frozen at rest: gravity alone."""
+        r = _rot_from_quat(*self._q)
+        if self._crashed or self._diverged:
+            return r.T @ np.array([0.0, 0.0, GRAVITY_MPS2])
+        return r.T @ np.array([self._acc[0], self._acc[1], self._acc[2] + GRAVITY_MPS2])
+
+    @property
+    def rotor_thrusts_n(self) -> tuple[float, float, float, float]:
+        """Each rotor's lagged thrust out of ground effect under :meth:`step_rotors` (N, world rotor order)."""
+        return tuple(self._rotor_act)
 
     def branch(self, config: SimConfig) -> "QuadrotorSim":
         """A copy of this simulator in its current state (time, vehicle, lags, commands in
@@ -550,7 +604,8 @@ class QuadrotorSim:
         speed); the configuration's constants come unpacked from :meth:`_physics_constants`."""
         (dt, g, m, ixx, iyy, izz, kax, kay, kaz, krx, kry, krz, kdx, kdy, kdz, mrx, mry, mrz, c_t, c_m, dx, dy, dz,
          a, inv4a, kq, inv4kq, t_max, sag, contact, rr, arm, flat, terrain_distance, terrain_height, use_ge, ratio,
-         a_ge, v_i, use_washout, washout_weight, scale_drag, drag_factor, f_hover, k_h, limits, f_min) = self._physics
+         a_ge, v_i, use_washout, washout_weight, scale_drag, drag_factor, f_hover, k_h, limits, f_min, c_up,
+         c_dn) = self._physics
         gust_step = self._gusts.step
         mocap_ticks = self._mocap_ticks
         pending = self._pending
@@ -569,6 +624,9 @@ class QuadrotorSim:
         thrust = self._thrust_n
         ge_total = self._ge_ratio
         gwx, gwy, gwz = self._gust
+        direct = self._rotor_cmd is not None  # an autopilot commands the rotors (step_rotors)
+        u0, u1, u2, u3 = self._rotor_cmd if direct else (0.0, 0.0, 0.0, 0.0)
+        r0, r1, r2, r3 = self._rotor_act
         crashed = diverged = False
         wx_prev, wy_prev, wz_prev = wx, wy, wz
 
@@ -592,41 +650,53 @@ class QuadrotorSim:
             r20 = 2.0 * (xz - wyq)
             r21 = 2.0 * (yz + wxq)
             r22 = 1.0 - 2.0 * (xx + yy)
-            # --- attitude P: q_e = conj(q) * q_d, rate setpoint in body frame
-            ew = qw * qdw + qx * qdx + qy * qdy + qz * qdz
-            ex = qw * qdx - qx * qdw - qy * qdz + qz * qdy
-            ey = qw * qdy - qy * qdw - qz * qdx + qx * qdz
-            ez = qw * qdz - qz * qdw - qx * qdy + qy * qdx
-            s2 = 2.0 if ew >= 0.0 else -2.0
-            rsx = s2 * kax * ex
-            rsy = s2 * kay * ey
-            rsz = s2 * kaz * ez
-            rsx = mrx if rsx > mrx else (-mrx if rsx < -mrx else rsx)
-            rsy = mry if rsy > mry else (-mry if rsy < -mry else rsy)
-            rsz = mrz if rsz > mrz else (-mrz if rsz < -mrz else rsz)
-            # --- rate P(+D) -> moment commands, first-order actuator lags
-            mx_cmd = ixx * (krx * (rsx - wx) - kdx * (wx - wx_prev) / dt)
-            my_cmd = iyy * (kry * (rsy - wy) - kdy * (wy - wy_prev) / dt)
-            mz_cmd = izz * (krz * (rsz - wz) - kdz * (wz - wz_prev) / dt)
-            mx_act += c_m * (mx_cmd - mx_act)
-            my_act += c_m * (my_cmd - my_act)
-            mz_act += c_m * (mz_cmd - mz_act)
-            t_act += c_t * (tn * t_max * batt - t_act)
-            # --- allocation (X quad), per-rotor saturation
-            # rotors: 0 (+a,+a) ccw-ish c=+1, 1 (-a,-a) c=+1, 2 (+a,-a) c=-1, 3 (-a,+a) c=-1
-            f_max = 0.25 * t_max * batt if limits else math.inf
-            tq = 0.25 * t_act
-            mxa = mx_act * inv4a
-            mya = my_act * inv4a
-            mza = mz_act * inv4kq
-            f0 = tq + mxa - mya + mza
-            f1 = tq - mxa + mya + mza
-            f2 = tq - mxa - mya - mza
-            f3 = tq + mxa + mya - mza
-            f0 = f_min if f0 < f_min else (f_max if f0 > f_max else f0)
-            f1 = f_min if f1 < f_min else (f_max if f1 > f_max else f1)
-            f2 = f_min if f2 < f_min else (f_max if f2 > f_max else f2)
-            f3 = f_min if f3 < f_min else (f_max if f3 > f_max else f3)
+            if direct:  # --- each rotor follows its command (fraction of its maximum), first-order lags
+                f_max = 0.25 * t_max * batt
+                d = u0 * f_max - r0
+                r0 += (c_up if d > 0.0 else c_dn) * d
+                d = u1 * f_max - r1
+                r1 += (c_up if d > 0.0 else c_dn) * d
+                d = u2 * f_max - r2
+                r2 += (c_up if d > 0.0 else c_dn) * d
+                d = u3 * f_max - r3
+                r3 += (c_up if d > 0.0 else c_dn) * d
+                f0, f1, f2, f3 = r0, r1, r2, r3
+            else:
+                # --- attitude P: q_e = conj(q) * q_d, rate setpoint in body frame
+                ew = qw * qdw + qx * qdx + qy * qdy + qz * qdz
+                ex = qw * qdx - qx * qdw - qy * qdz + qz * qdy
+                ey = qw * qdy - qy * qdw - qz * qdx + qx * qdz
+                ez = qw * qdz - qz * qdw - qx * qdy + qy * qdx
+                s2 = 2.0 if ew >= 0.0 else -2.0
+                rsx = s2 * kax * ex
+                rsy = s2 * kay * ey
+                rsz = s2 * kaz * ez
+                rsx = mrx if rsx > mrx else (-mrx if rsx < -mrx else rsx)
+                rsy = mry if rsy > mry else (-mry if rsy < -mry else rsy)
+                rsz = mrz if rsz > mrz else (-mrz if rsz < -mrz else rsz)
+                # --- rate P(+D) -> moment commands, first-order actuator lags
+                mx_cmd = ixx * (krx * (rsx - wx) - kdx * (wx - wx_prev) / dt)
+                my_cmd = iyy * (kry * (rsy - wy) - kdy * (wy - wy_prev) / dt)
+                mz_cmd = izz * (krz * (rsz - wz) - kdz * (wz - wz_prev) / dt)
+                mx_act += c_m * (mx_cmd - mx_act)
+                my_act += c_m * (my_cmd - my_act)
+                mz_act += c_m * (mz_cmd - mz_act)
+                t_act += c_t * (tn * t_max * batt - t_act)
+                # --- allocation (X quad), per-rotor saturation
+                # rotors: 0 (+a,+a) ccw-ish c=+1, 1 (-a,-a) c=+1, 2 (+a,-a) c=-1, 3 (-a,+a) c=-1
+                f_max = 0.25 * t_max * batt if limits else math.inf
+                tq = 0.25 * t_act
+                mxa = mx_act * inv4a
+                mya = my_act * inv4a
+                mza = mz_act * inv4kq
+                f0 = tq + mxa - mya + mza
+                f1 = tq - mxa + mya + mza
+                f2 = tq - mxa - mya - mza
+                f3 = tq + mxa + mya - mza
+                f0 = f_min if f0 < f_min else (f_max if f0 > f_max else f0)
+                f1 = f_min if f1 < f_min else (f_max if f1 > f_max else f1)
+                f2 = f_min if f2 < f_min else (f_max if f2 > f_max else f2)
+                f3 = f_min if f3 < f_min else (f_max if f3 > f_max else f3)
             # --- gusts and the air-relative velocity, body frame
             h_terrain = pz if flat else pz - terrain_height(px, py)
             gwx, gwy, gwz = gust_step(h_terrain, math.sqrt(vx * vx + vy * vy))
@@ -747,6 +817,7 @@ class QuadrotorSim:
         self._w = [wx, wy, wz]
         self._thrust_act_n = t_act
         self._moment_act = [mx_act, my_act, mz_act]
+        self._rotor_act = [r0, r1, r2, r3]
         self._active = ((qdw, qdx, qdy, qdz), tn)
         self._on_ground = on_ground
         self._acc = [ax, ay, az]

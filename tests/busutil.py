@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from contextlib import contextmanager
 
 from runtime.bus import BusConfig, hub_config, open_session
@@ -168,3 +169,15 @@ def role_pid(launcher_pid: int, role: str) -> int:
     if pid is None:
         raise AssertionError(f"no {role} process under the launcher")
     return pid
+
+
+def wait_for(what: str, check, timeout_s: float, every_s: float = 0.2):
+    """``check()``'s first truthy value within ``timeout_s`` (polled every ``every_s``), else AssertionError naming
+    ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(every_s)
+    raise AssertionError(f"not within {timeout_s:.0f} s: {what}")

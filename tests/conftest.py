@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-TIERS = ("unit", "sim", "bus", "process", "browser")  # registered in pyproject.toml, with "slow"
+TIERS = ("unit", "sim", "bus", "process", "browser", "px4")  # registered in pyproject.toml, with "slow"
 TESTS = Path(__file__).resolve().parent
 
 _groups: dict[str, tuple[str, ...]] = {}  # node id → its tier, and "slow" if it is marked so

@@ -1,0 +1,68 @@
+"""The px4 tier's flight: `neso up --vehicle px4` on a free PX4 instance, one per test module (``flight``)."""
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from runtime.client import command
+from sim.px4_sitl import missing_px4, px4_home
+from tests.busutil import NesoUp, free_port, peer
+
+TOPICS = ("state", "truth", "setpoint", "reference", "telemetry", "recording")
+
+
+def free_px4_instance() -> int:
+    """A PX4 SITL instance (0–9) whose ports are free here (another flight may be running on a shared machine)."""
+    import socket
+
+    for instance in range(10):
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+                tcp.bind(("127.0.0.1", 4560 + instance))
+            for port in (14540, 14580, 18570):
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                    udp.bind(("127.0.0.1", port + instance))
+            return instance
+        except OSError:
+            continue
+    raise AssertionError("no free PX4 SITL instance (ports 4560/14540/14580/18570 + 0–9 all taken)")
+
+
+class Px4Flight(NesoUp):
+    def __init__(self, tmp):
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        old = dict(os.environ)
+        # MAVSDK writes its cache under $HOME/.cache/mavsdk: a HOME of the test's own; PX4 stays where make setup put it
+        os.environ.update(HOME=str(tmp), NESO_PX4_HOME=str(px4_home()))
+        try:
+            self.t0 = time.monotonic()
+            super().__init__("--vehicle", "px4", "--px4-instance", str(free_px4_instance()), "--hub", endpoint,
+                             "--no-trainer", "--no-dashboard", "--recordings-dir", str(tmp / "recordings"),
+                             bus=peer(endpoint), topics=TOPICS)
+        finally:
+            os.environ.clear()
+            os.environ.update(old)
+        self.recordings = tmp / "recordings"
+
+    def cmd(self, service: str, name: str, **args):
+        return command(self.s, self.probe.keys, service, name, args, timeout_s=8.0)
+
+    def telemetry(self):
+        got = self.probe.get("telemetry")
+        return got[-1] if got else None
+
+    def log(self, text: str) -> bool:
+        return any(text in line for line in self.output)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    assert not missing_px4(), missing_px4()  # make setup builds it (tests/README.md)
+    tmp = tmp_path_factory.mktemp("px4")
+    f = Px4Flight(tmp)
+    yield f
+    out = f.close()
+    (tmp / "flight.log").write_text(out)  # what every process said, to read after a failure
+    assert "Traceback" not in out, out[-4000:]
