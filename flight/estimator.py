@@ -182,6 +182,7 @@ class EstimatorCore:
         self.active_shadow = ShadowError(SHADOW_WINDOW)  # the active network's error, same samples
         self._shadow_features: FeatureBuilder | None = None
         self.swapped = False  # a network from an offer is flying (the L_N parameter no longer picks networks)
+        self.bound_in_force: float | None = None  # an L_N the operator set: what flies may use up to it
         self.changes = 0  # bumped on every network change, so the adapter publishes NetworkMsg at once
         self.canary = Canary(config.canary)
         self.canary_last = ""
@@ -207,8 +208,14 @@ class EstimatorCore:
         return flight_certificate(lip, kp=kp, kd=kd, omega_o=self.config.omega_o_rps)
 
     def certificate(self) -> FlightCertificate:
-        """The verdict for the network flying now."""
-        return self.certificate_of(self.estimator.network)
+        """The verdict for the network flying now, under the L_N the operator set (a bound above the certificate
+        is not certified even while the network found for it stays inside)."""
+        net = self.estimator.network
+        if net is None or self.bound_in_force is None:
+            return self.certificate_of(net)
+        kp, kd = self.gains_z
+        return flight_certificate(max(net.certified_lipschitz_state(), self.bound_in_force), kp=kp, kd=kd,
+                                  omega_o=self.config.omega_o_rps)
 
     def set_gains(self, kp_z: float, kd_z: float) -> str | None:
         """The controller's z gains changed (its parameter broadcast); a note if the certificate now fails."""
@@ -251,6 +258,8 @@ class EstimatorCore:
         if "lipschitz_bound" in changed and self.choice.loaded is not None and not self.swapped:
             net, note = self.choice.network_for(changed["lipschitz_bound"])
             self.estimator.set_network(net)
+            loaded = self.choice.loaded.lipschitz_bound_physical()
+            self.bound_in_force = None if _same_bound(changed["lipschitz_bound"], loaded) else changed["lipschitz_bound"]
             self.network_id = f"{net.metadata.get('id', 'unnamed')}@L{changed['lipschitz_bound']:.4g}"
             path = next((p for n, p in self.choice.trained.values() if n is net), None)
             self.active_info = _describe(net, "scaled" if path is None else "file", path or self.choice.source,
@@ -306,6 +315,7 @@ class EstimatorCore:
         self.estimator.set_network(net)
         info = {k: v for k, v in info.items() if k != "state"}
         self.active_info, self.network_id, self.candidate, self.swapped = info, info["id"], None, True
+        self.bound_in_force = None
         self.changes += 1
         self.canary.arm()
         self.canary_last = f"armed at the promotion of {info['id']}"
@@ -323,6 +333,7 @@ class EstimatorCore:
         self.estimator.set_network(net)
         self.active_info, self.network_id = info, info["id"]
         self.swapped = info.get("source") == "registry"
+        self.bound_in_force = None
         self.changes += 1
         self.canary.disarm()
         return True, f"rolled back to {info['id']}; previous {self.previous[1]['id']}"
