@@ -217,16 +217,16 @@ def test_lipschitz_bound_certified_is_applied_uncertifiable_refused_unless_overr
     tab(page, "Control")
     half, double = _bound("base-x0.5"), _bound("base-x2")
     set_lipschitz(page, f"{half:.4f}", override=False)  # a network trained for it is on disk: certified
-    wait_text(page, rf"accepted · L_N={half:.4g} on uav1")
+    wait_text(page, rf"accepted · L_N={float(f'{half:.4f}'):g} on uav1")
     flight.probe.wait_for("estimate", lambda m: m.network_id.startswith("base-x0.5@"), timeout_s=5)
 
     set_lipschitz(page, f"{double:.4f}", override=False)  # base-x2: outside the certificate
-    wait_text(page, rf"refused · L_N={double:.4g} on uav1: certificate FAILS.*margin -")
+    wait_text(page, rf"refused · L_N={float(f'{double:.4f}'):g} on uav1: certificate FAILS.*margin -")
     time.sleep(0.5)
     assert flight.probe.get("estimate")[-1].network_id.startswith("base-x0.5@")  # nothing changed
 
     set_lipschitz(page, f"{double:.4f}", override=True)
-    wait_text(page, rf"accepted · L_N={double:.4g} on uav1")
+    wait_text(page, rf"accepted · L_N={float(f'{double:.4f}'):g} on uav1")
     flight.probe.wait_for("estimate", lambda m: m.network_id.startswith("base-x2@"), timeout_s=5)
     wait_status(page, "certificate", r"^cert FAILS$")
     set_lipschitz(page, f"{_bound('base'):.6f}", override=False)

@@ -12,10 +12,12 @@ import time
 
 import pytest
 
+from neso.netfile import load_network
 from runtime.client import get_params
 from runtime.schema import Keys
 from tests.browser.chromium import choose, dashboard_page, set_lipschitz, tab, text, wait_status, wait_text
 from tests.busutil import NesoUp, free_port, secure_init, secure_peer
+from tests.helpers import REPO
 
 KEYS = Keys("uav1")
 
@@ -61,8 +63,9 @@ def test_pathway_and_certified_lipschitz_bound_from_the_page_reach_the_estimator
     choose(page, "Pathway", "neural_eso")
     wait_text(page, r"accepted · pathway neural_eso")
     flight.probe.wait_for("estimate", lambda m: m.pathway == "neural_eso", timeout_s=5)
-    set_lipschitz(page, "2.984", override=False)  # base-x2's bound: the estimator refuses it with the margin
-    wait_text(page, r"refused · L_N=2\.984 on uav1: certificate FAILS.*margin -")
+    double = load_network(REPO / "networks" / "base-x2.safetensors").lipschitz_bound_physical()
+    set_lipschitz(page, f"{double:.4f}", override=False)  # base-x2's bound: the estimator refuses it with the margin
+    wait_text(page, rf"refused · L_N={float(f'{double:.4f}'):g} on uav1: certificate FAILS.*margin -")
     set_lipschitz(page, "0.5", override=False)
     wait_text(page, r"accepted · L_N=0\.5 on uav1")
     flight.probe.wait_for("estimate", lambda m: m.network_id.endswith("@L0.5"), timeout_s=5)
