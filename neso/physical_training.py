@@ -138,7 +138,10 @@ class _Torch:
         self.torch, self.blocks, self.bounds = torch, blocks, bounds
         lay = layers.normalised()
         first = lay.mats[0]
-        t = lambda a: torch.tensor(np.asarray(a, dtype=np.float64), dtype=torch.float64, requires_grad=True)  # noqa: E731
+
+        def t(a):
+            return torch.tensor(np.asarray(a, dtype=np.float64), dtype=torch.float64, requires_grad=True)
+
         self.v_blocks, self.rho = [], []
         for cols, bound in zip(blocks, bounds):
             m = first[:, list(cols)]
@@ -160,10 +163,8 @@ class _Torch:
     def matrices(self):
         torch = self.torch
         first = torch.zeros((self.v_blocks[0].shape[0], self.n_in), dtype=torch.float64)
-        cols_all = []
         for cols, v, rho, bound in zip(self.blocks, self.v_blocks, self.rho, self.bounds):
             first = first.index_add(1, torch.tensor(cols), bound * torch.sigmoid(rho) * self._norm(v))
-            cols_all.extend(cols)
         return [first] + [self._norm(v) for v in self.v_rest]
 
     def forward(self, x):
