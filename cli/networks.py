@@ -3,7 +3,6 @@ the trained ones in the registry — with their bound, validation loss and small
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 
@@ -51,15 +50,9 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
                      "label": meta.get("training_data", "").split(":")[0], "parent": "" if meta.get("warm_start", "no") == "no" else meta["warm_start"],
                      "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
                      "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
-                     "val_loss": float(val) if val else None, **_learned(net), "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
+                     "val_loss": float(val) if val else None, **net.learned, "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
                      "flown_by_default": path.resolve() == flown_by_default, "path": str(path)})
     return rows
-
-
-def _learned(net) -> dict:
-    learned = net.learned
-    vs = learned["val_loss_vs_mean"]
-    return {"val_loss_vs_mean": vs if math.isfinite(vs) else None, "slopes": learned["slopes"]}
 
 
 def _slopes_text(slopes: dict) -> str:

@@ -200,22 +200,19 @@ class EstimatorCore:
         self.rate_check = RateCheck("estimator", config.dt_s)
 
     # -- the certificate -------------------------------------------------------------------
-    def certificate_of(self, net: LipschitzMLP | None, gains_z: tuple[float, float] | None = None) -> FlightCertificate:
+    def certificate_of(self, net: LipschitzMLP | None, gains_z: tuple[float, float] | None = None,
+                       bound: float | None = None) -> FlightCertificate:
         """The certificate of flying ``net`` (its exact physical Lipschitz constant in its state inputs; 0 without
-        one)."""
+        one) under an L_N ``bound`` the operator set (None: the network's own figure counts)."""
         kp, kd = gains_z or self.gains_z
         lip = net.certified_lipschitz_state() if net is not None else 0.0
-        return flight_certificate(lip, kp=kp, kd=kd, omega_o=self.config.omega_o_rps)
+        return flight_certificate(max(lip, bound or 0.0), kp=kp, kd=kd, omega_o=self.config.omega_o_rps)
 
     def certificate(self) -> FlightCertificate:
         """The verdict for the network flying now, under the L_N the operator set (a bound above the certificate
         is not certified even while the network found for it stays inside)."""
         net = self.estimator.network
-        if net is None or self.bound_in_force is None:
-            return self.certificate_of(net)
-        kp, kd = self.gains_z
-        return flight_certificate(max(net.certified_lipschitz_state(), self.bound_in_force), kp=kp, kd=kd,
-                                  omega_o=self.config.omega_o_rps)
+        return self.certificate_of(net, bound=self.bound_in_force if net is not None else None)
 
     def set_gains(self, kp_z: float, kd_z: float) -> str | None:
         """The controller's z gains changed (its parameter broadcast); a note if the certificate now fails."""
@@ -240,12 +237,8 @@ class EstimatorCore:
                 return refusal
             net, _ = self.choice.network_for(values["lipschitz_bound"])
         if net is not None and values["pathway"] in PRIOR_PATHWAYS:
-            cert = self.certificate_of(net)
-            if net is not current:  # a new L_N: the bound asked for must be certified, not only the network met
-                kp, kd = self.gains_z
-                asked = flight_certificate(max(values["lipschitz_bound"], net.certified_lipschitz_state()), kp=kp,
-                                           kd=kd, omega_o=self.config.omega_o_rps)
-                cert = asked if not asked.holds else cert
+            # a new L_N: the bound asked for must be certified, not only the network found for it
+            cert = self.certificate_of(net, bound=values["lipschitz_bound"] if net is not current else None)
             if not cert.holds:
                 return Refusal(cert.text(), overridable=True)
         return None
@@ -462,15 +455,8 @@ def _describe(net: LipschitzMLP | None, source: str, path: str, net_id: str | No
             "lipschitz_norm": net.certified_lipschitz_normalised(), "lipschitz_phys": net.certified_lipschitz_physical(),
             "certified_phys": net.certified_lipschitz_physical(), "certified_state": net.certified_lipschitz_state(),
             "val_loss": net.metadata.get("val_loss", ""),
-            **_learned(net)}
+            **net.learned}
 
-
-def _learned(net: LipschitzMLP) -> dict:
-    """What training recorded it learned, JSON-safe: validation loss over the mean's, mean physical slopes."""
-    learned = net.learned
-    vs = learned["val_loss_vs_mean"]
-    return {"val_loss_vs_mean": vs if math.isfinite(vs) else None,
-            "slopes": {k: v for k, v in learned["slopes"].items() if math.isfinite(v)}}
 
 
 def shipped(path: str) -> str:

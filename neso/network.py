@@ -167,8 +167,8 @@ class LipschitzMLP:
 
     @property
     def learned(self) -> dict:
-        """What training recorded about what it learned: ``val_loss_vs_mean`` (validation MSE over that of
-        predicting the mean; NaN if not recorded) and ``slopes`` (mean physical ∂h/∂input by input name)."""
+        """What training recorded about what it learned, JSON-safe: ``val_loss_vs_mean`` (validation MSE over
+        that of predicting the mean; None if not recorded) and ``slopes`` (mean physical ∂h/∂input by input name)."""
         try:
             slopes = {str(k): float(v) for k, v in json.loads(self.metadata.get("slopes", "{}")).items()}
         except (ValueError, AttributeError):
@@ -177,7 +177,8 @@ class LipschitzMLP:
             vs = float(self.metadata.get("val_loss_vs_mean", "nan"))
         except ValueError:
             vs = float("nan")
-        return {"val_loss_vs_mean": vs, "slopes": slopes}
+        return {"val_loss_vs_mean": vs if np.isfinite(vs) else None,
+                "slopes": {k: v for k, v in slopes.items() if np.isfinite(v)}}
 
     @property
     def layer_sizes(self) -> tuple[int, ...]:
