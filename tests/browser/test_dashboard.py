@@ -22,10 +22,15 @@ import pytest
 from neso.netfile import load_network, save_network
 from runtime.client import command, get_params
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
-from tests.browser.chromium import (PLOT_POINTS_JS, choose, dashboard_page, hide_notifications, open_dashboard,
+from tests.browser.chromium import (PLOT_POINTS_JS, STATUS_JS, choose, dashboard_page, hide_notifications, open_dashboard,
                                     set_lipschitz, status, tab, text, wait_status, wait_text)
 from tests.busutil import REPO, NesoUp, children_of, free_port, peer
 from tests.helpers import candidate
+
+# the status line, the plots' sample counts and the page's text in one evaluation, with the page's time since its
+# load event (ms)
+SNAPSHOT_JS = f"""() => ({{status: ({STATUS_JS})(), points: ({PLOT_POINTS_JS})(), text: document.body.textContent,
+    after_load_ms: performance.now() - performance.getEntriesByType('navigation')[0].loadEventEnd}})"""
 
 ARTIFACTS = Path(REPO) / "out" / "artifacts"
 KEYS = Keys("uav1")
@@ -100,16 +105,22 @@ def test_a_fresh_page_shows_status_plots_and_certificate_as_soon_as_it_shows_any
         page.goto(flight.url, wait_until="load", timeout=20000)
         loaded = time.monotonic()
         shown: dict[str, float] = {}
+        round_trips: list[float] = []
         while len(shown) < len(checks) and time.monotonic() < loaded + 10.0:
-            st, points, page_text = status(page), page.evaluate(PLOT_POINTS_JS), text(page)
+            # one snapshot of the page, timed by its own clock from its load event: a slow round trip to a busy
+            # page delays when the test learns of it, not when it was there
+            asked = time.monotonic()
+            snap = page.evaluate(SNAPSHOT_JS)
+            round_trips.append(time.monotonic() - asked)
             for name, check in checks.items():
-                if name not in shown and check(st, points, page_text):
-                    shown[name] = round(time.monotonic() - loaded, 3)
+                if name not in shown and check(snap["status"], snap["points"], snap["text"]):
+                    shown[name] = round(snap["after_load_ms"] / 1000.0, 3)
             time.sleep(0.02)
         FIGURES["fresh_page_shown_after_load_s"] = shown
         FIGURES["fresh_page_load_event_after_navigation_s"] = round(loaded - started, 3)
+        FIGURES["fresh_page_slowest_snapshot_s"] = round(max(round_trips), 3)
         print("fresh page: shown after its load event (s):", shown, "; load event", round(loaded - started, 3),
-              "s after navigation started")
+              "s after navigation started; slowest snapshot", round(max(round_trips), 3), "s")
         assert set(shown) == set(checks), (status(page), page.evaluate(PLOT_POINTS_JS))
         assert max(shown.values()) - shown["controls"] < 2.0, shown  # filled within 2 s of the page showing
         assert shown["controls"] < 8.0, shown  # the client's own start-up on this loaded machine

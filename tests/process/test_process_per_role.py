@@ -64,6 +64,11 @@ def test_two_vehicles_fly_on_one_estimator_and_one_controller_process_and_surviv
         roles = sorted(a[a.index(b"run") + 1].decode() for a in argv.values() if b"run" in a)
         assert roles.count("estimator") == roles.count("controller") == roles.count("recorder") == 1, roles
         assert roles.count("source") == 2, roles
+        # the shared estimator starts beside the controller (its network's certificate first): once both vehicles
+        # fly on its estimates, they go on doing so
+        begun = flight.counts()
+        flight.wait(lambda: all(s[-25:].count("estimator") == 25 for s in flight.sources_since(begun).values()), 30,
+                    "both vehicles on the estimator's estimates")
         start = flight.counts()
         time.sleep(2.0)
         for v, sources in flight.sources_since(start).items():
