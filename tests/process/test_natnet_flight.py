@@ -98,3 +98,18 @@ def test_a_rigid_body_lost_for_a_second_is_flagged_and_the_hover_goes_on(tmp_pat
     truth = flight.probe.get("truth")
     assert not any(m.crashed for m in truth)
     assert abs(truth[-1].pos_enu_m[2] - 1.0) < 0.05, "hovering again at 1 m"
+
+
+def test_frames_at_360_hz_fly_on_the_50_hz_grid_without_a_rate_error(tmp_path):
+    """Each period's state carries the time of the frame that opens it (steps of 19.4 and 22.2 ms): the
+    estimator's and controller's rate check reads the period from their trend, and says nothing."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    flight = NesoUp("--mocap", "natnet", "--natnet-port", str(free_udp_port()), "--natnet-rate", "360",
+                    "--duration", "8", "--mission", "hover", "--hub", endpoint, "--no-dashboard", "--no-trainer",
+                    "--recordings-dir", str(tmp_path), bus=peer(endpoint))
+    out = finish(flight)
+    steps_ms = np.diff([m.t_s for m in flight.probe.get("state")]) * 1000.0
+    assert len(steps_ms) > 300 and set(np.round(steps_ms, 1)) >= {19.4, 22.2}, sorted(set(np.round(steps_ms, 1)))
+    assert "discretisation is wrong" not in out, [line for line in out.splitlines() if "discretisation" in line]
+    truth = flight.probe.get("truth")
+    assert not any(m.crashed for m in truth) and abs(truth[-1].pos_enu_m[2] - 1.0) < 0.05
