@@ -136,6 +136,17 @@ class SimSource:
         self.setpoint = AttitudeSetpoint(0.0, 0.0, 0.0, 0.0, 0.0) if on_ground else hover.setpoint
         self.setpoint_seq = -1
         self.seq = -1
+        self.untracked_until_t_s = -math.inf
+
+    def lose_tracking(self, duration_s: float) -> None:
+        """The world's motion capture loses the vehicle for ``duration_s`` (s) of world time from now: its
+        states are not to be published (:attr:`tracked`); the world flies on."""
+        self.untracked_until_t_s = self.sim.t_s + duration_s
+
+    @property
+    def tracked(self) -> bool:
+        """Whether the last :meth:`step`'s state was seen by the world's motion capture."""
+        return self.sim.t_s > self.untracked_until_t_s
 
     def take(self, sp: SetpointMsg) -> None:
         """Hold ``sp`` from the next period on (older ones than held are ignored)."""

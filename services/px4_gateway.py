@@ -27,7 +27,8 @@ companion link), streams each setpoint with ``Offboard.set_attitude`` as it arri
 re-sends the last one at 20 Hz), answers ``arm disarm takeoff land hold offboard_start
 offboard_stop calibrate_hover`` commands with the vehicle's acknowledgement, publishes
 TelemetryMsg at 10 Hz, and forwards the bus state (motion capture) to PX4 as external-vision
-ODOMETRY.
+ODOMETRY; while no state has come for ``pose_lost_after_s`` it repeats the last pose at 50 Hz with quality -1
+(MAVLink's "odometry has failed"), so that PX4 knows the motion capture is lost rather than late.
 """
 from __future__ import annotations
 
@@ -77,6 +78,9 @@ class GatewayConfig:
     land_after_s: float = option(3.0, flag="--land-after", unit="s", help="in failsafe hold before land")
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
+    pose_lost_after_s: float = option(0.1, flag="--pose-lost-after", unit="s",
+                                      help="without a forwarded state before PX4 is told the motion capture failed "
+                                           "(external-vision odometry quality -1)")
     forward_sources: tuple[str, ...] = option(("mocap",), cli=comma_list(),
                                               help="state sources forwarded to PX4 as external vision (comma-separated; "
                                                    "'' none)")
@@ -98,7 +102,7 @@ class GatewayCore:
     def __init__(self, config: GatewayConfig) -> None:
         self.config = config
         self.hover_thrust_norm = config.hover_thrust_norm
-        self.counts = {"refused_nonfinite": 0, "clamped_tilt": 0, "clamped_thrust": 0, "sent": 0}
+        self.counts = {"refused_nonfinite": 0, "clamped_tilt": 0, "clamped_thrust": 0, "sent": 0, "pose_failed_sent": 0}
         self.last_setpoint_s: float | None = None
         self.last_sent: Px4Attitude | None = None
         self.failsafe = ""  # "", "hold" or "land"
@@ -108,6 +112,8 @@ class GatewayCore:
         self._acc_z = 0.0
         self._calibration: list[float] | None = None
         self._calibration_end_s = 0.0
+        self.last_pose_s: float | None = None
+        self.pose_lost_since_s: float | None = None
         self.events: list[tuple[str, str]] = []
 
     # -- setpoints ---------------------------------------------------------------------
@@ -159,6 +165,37 @@ class GatewayCore:
     def clear_failsafe(self) -> None:
         """An operator took over (offboard start, or an explicit mode command)."""
         self.failsafe = ""
+
+    # -- motion capture to PX4 -----------------------------------------------------------------
+    def on_pose(self, now_s: float) -> None:
+        """A state to forward to PX4 as external vision arrived at ``now_s``."""
+        if self.pose_lost_since_s is not None:
+            self.events.append(("info", f"motion capture back after {now_s - self.pose_lost_since_s:.2f} s: PX4 "
+                                        "fuses it again (odometry quality 100)"))
+            self.pose_lost_since_s = None
+        self.last_pose_s = now_s
+
+    def level_setpoint(self) -> Px4Attitude | None:
+        """What to fly while the motion capture is lost: level, at the vehicle's hover thrust, on the last
+        setpoint's heading (None before any setpoint). The controller has no state to answer; repeating its last
+        tilt would accelerate the vehicle blind (measured on PX4 SITL in a ±0.2 m limit cycle, 1 s lost: 2.8 m x,
+        5.5 m y)."""
+        if self.last_sent is None:
+            return None
+        return Px4Attitude(0.0, 0.0, self.last_sent.yaw_deg, self.hover_thrust_norm)
+
+    def pose_failed(self, now_s: float) -> bool:
+        """True while PX4 must be told its external vision failed: a pose was forwarded once and none for
+        ``pose_lost_after_s`` since (the rigid body lost, the stream or the source stopped)."""
+        if self.last_pose_s is None or now_s - self.last_pose_s <= self.config.pose_lost_after_s:
+            return False
+        if self.pose_lost_since_s is None:
+            self.pose_lost_since_s = self.last_pose_s
+            self.events.append(("warning", f"no motion capture for {now_s - self.last_pose_s:.2f} s: PX4 told it "
+                                           "failed (external-vision odometry quality -1, which EKF2 does not fuse "
+                                           "with EKF2_EV_QMIN 1) and flown level at the hover thrust until it is "
+                                           "back"))
+        return True
 
     # -- hover thrust --------------------------------------------------------------------
     def on_state(self, state: StateMsg, now_s: float, *, offboard: bool) -> None:
@@ -242,6 +279,7 @@ class Px4Link:
                      "autopilot": "", "status_text": ""}
         self.system = self.action = self.offboard = self.mocap = None
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
+        self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
         self.actions: queue.Queue = queue.Queue()
 
     # -- life ----------------------------------------------------------------------------
@@ -334,13 +372,18 @@ class Px4Link:
     def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
         att = self.core.on_setpoint(msg, received_s)
         if att is not None and self.offboard is not None:
-            from mavsdk.plugins.offboard import Attitude
-
-            self.last_attitude = Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm)
-            if self._may_stream():
-                self.offboard.set_attitude(self.last_attitude)
+            self._send_attitude(att, stream=self._may_stream())
             self.node.stats.output(time.monotonic() - received_s)
         self._drain_events()
+
+    def _send_attitude(self, att: Px4Attitude, *, stream: bool = True) -> None:
+        """Keep ``att`` as the newest setpoint (``offboard_start`` hands it over first) and, with ``stream``, hand
+        it to MAVSDK's offboard stream (it re-sends the newest at 20 Hz)."""
+        from mavsdk.plugins.offboard import Attitude
+
+        self.last_attitude = Attitude(att.roll_deg, att.pitch_deg, att.yaw_deg, att.thrust_norm)
+        if stream:
+            self.offboard.set_attitude(self.last_attitude)
 
     def _may_stream(self) -> bool:
         """Setpoints go to the vehicle in offboard, or while it is not known to be armed and its mode is known and
@@ -356,14 +399,18 @@ class Px4Link:
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
         if msg.source in self.config.forward_sources and self.mocap is not None:
+            self.core.on_pose(received_s)
+            self.last_pose = msg
             self._forward_pose(msg)
         self._drain_events()
 
-    def _forward_pose(self, msg: StateMsg) -> None:
+    def _forward_pose(self, msg: StateMsg, quality_percent: int = 100) -> None:
         """The state as external vision, in the form PX4 v1.16's EKF2 fuses (mavlink_receiver.cpp,
         handle_message_odometry): estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which EKF2 does
         not read), pose frame LOCAL_FRD (MOCAP_NED is not among the frames it accepts: the position arrives
-        as NaN), velocity in the body FRD frame (MAVSDK's child frame)."""
+        as NaN), velocity in the body FRD frame (MAVSDK's child frame). ``quality_percent``: MAVLink's
+        ODOMETRY.quality, 100 for a tracked pose, -1 ("odometry has failed") for the last one repeated while the
+        motion capture is lost; EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp)."""
         from mavsdk.plugins.mocap import (AngularVelocityBody, Covariance, Odometry, PositionBody, Quaternion,
                                           SpeedBody)
 
@@ -375,7 +422,7 @@ class Px4Link:
             time_usec=0, frame_id=Odometry.MavFrame.LOCAL_FRD, position_body=PositionBody(y, x, -z),
             q=Quaternion(*q), speed_body=SpeedBody(*(float(v) for v in v_frd)),
             angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan), pose_covariance=nan,
-            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.VISION, quality_percent=100))
+            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.VISION, quality_percent=quality_percent))
 
     def _on_command(self, name: str, args: dict) -> tuple[bool, str]:
         """Runs without the node lock: waits (up to 5 s) for the worker to get the vehicle's answer."""
@@ -421,8 +468,14 @@ class Px4Link:
     def _watchdog_loop(self) -> None:
         while not self.node.wait(0.02):
             with self.node.lock:
-                action = self.core.check_stale(time.monotonic(), offboard=self.tele["mode"] == "OFFBOARD",
-                                               armed=self.tele["armed"])
+                now = time.monotonic()
+                action = self.core.check_stale(now, offboard=self.tele["mode"] == "OFFBOARD", armed=self.tele["armed"])
+                if self.core.pose_failed(now) and self.mocap is not None and self.last_pose is not None:
+                    self._forward_pose(self.last_pose, quality_percent=-1)  # at the watchdog's 50 Hz
+                    self.core.counts["pose_failed_sent"] += 1
+                    level = self.core.level_setpoint()
+                    if level is not None and self.offboard is not None and self.tele["mode"] == "OFFBOARD":
+                        self._send_attitude(level)
                 self._drain_events()
             if action and self.system is not None:
                 self.actions.put((action, lambda result, a=action: self.node.event(
@@ -465,5 +518,6 @@ class Px4Link:
         c = self.core.counts
         return (f"{'connected' if self.system is not None else 'waiting for the vehicle'}, mode {self.tele['mode']}, "
                 f"armed {self.tele['armed']}, hover {self.core.hover_thrust_norm:.3f}, sent {c['sent']}, "
-                f"refused {c['refused_nonfinite']}, clamped tilt {c['clamped_tilt']} thrust {c['clamped_thrust']}"
+                f"refused {c['refused_nonfinite']}, clamped tilt {c['clamped_tilt']} thrust {c['clamped_thrust']}, "
+                f"mocap failed sent {c['pose_failed_sent']}"
                 + (f", FAILSAFE {self.core.failsafe}" if self.core.failsafe else ""))

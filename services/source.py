@@ -81,8 +81,17 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
     def on_command(name: str, args: dict) -> tuple[bool, str]:
         from sim.scenarios import SCENARIOS
 
+        if name == "lose_tracking":
+            if config.lockstep:
+                return False, "a lockstep flight waits for every state's setpoint: it cannot lose tracking"
+            duration = args.get("duration_s", 1.0)
+            if not isinstance(duration, (int, float)) or not 0.02 <= duration <= 10.0:
+                return False, f"lose_tracking needs duration_s in 0.02-10 s, got {duration!r}"
+            core.lose_tracking(float(duration))
+            return True, (f"the world's motion capture loses the vehicle for {duration:g} s from t={core.sim.t_s:.2f} s: "
+                          "no state until then")
         if name != "scenario":
-            return False, f"unknown command {name!r}; the sim source takes: scenario"
+            return False, f"unknown command {name!r}; the sim source takes: scenario, lose_tracking"
         wanted = args.get("name")
         if wanted not in SCENARIOS:
             return False, f"scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
@@ -102,24 +111,23 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
             if next_scenario:
                 core = SimSource(replace(core.config, scenario=next_scenario.pop()), clock=time.monotonic)
                 node.event("info", f"world restarted with scenario {core.config.scenario}")
-            elif not config.lockstep and core.seq >= 0 and core.setpoint_seq != core.seq:
+            elif not config.lockstep and last_state and last_state[0].seq == core.seq \
+                    and core.setpoint_seq != core.seq:
                 misses[0] += 1
                 node.stats.count("deadline_misses")
-                if last_state and last_state[0].seq == core.seq:
-                    watch.missed(core.seq, last_state[0].stamp_s, time.monotonic())
+                watch.missed(core.seq, last_state[0].stamp_s, time.monotonic())
             state, truth = core.step()
-            put_state(state)
             put_truth(truth)
-            last_state[:] = [state]
-            node.stats.output(time.monotonic() - state.stamp_s)
-            why = watch.report(time.monotonic(), load_1min=os.getloadavg()[0], cores=os.cpu_count() or 1)
-            if why:
-                node.event("warning", why)
-            if config.lockstep:
-                while core.setpoint_seq != state.seq and not node.stopping:
-                    if not arrived.wait(config.lockstep_resend_s) and core.setpoint_seq != state.seq:
-                        node.log(f"lockstep: no setpoint for sample {state.seq} after {config.lockstep_resend_s} s; re-sending")
-                        put_state(state)
+            if core.tracked:
+                if last_state and last_state[0].seq < state.seq - 1:
+                    node.event("info", f"the world's motion capture sees the vehicle again at t={truth.t_s:.2f} s "
+                                       f"({state.seq - 1 - last_state[0].seq} samples without a state)")
+                _publish_state(node, config, state, put_state, last_state, watch, arrived, core)
+            else:  # the world's motion capture does not see it (command lose_tracking): no state
+                node.stats.count("untracked_samples")
+                if last_state and last_state[0].seq == state.seq - 1:
+                    node.event("warning", f"the world's motion capture lost the vehicle at t={truth.t_s:.2f} s: "
+                                          "no state until it is back")
         if not config.lockstep:
             next_tick += period
             delay = next_tick - time.monotonic()
@@ -168,6 +176,22 @@ def _run_sim_mavlink(node, config: SourceConfig) -> None:
     finally:
         vehicle.close()
     node.log(f"done: {core.seq + 1} samples, t={core.sim.t_s:.2f} s")
+
+
+def _publish_state(node, config: SourceConfig, state: StateMsg, put_state, last_state: list, watch: DeadlineWatch,
+                   arrived: threading.Condition, core: SimSource) -> None:
+    """One state on the bus (under the node lock); in lockstep, until its setpoint has come."""
+    put_state(state)
+    last_state[:] = [state]
+    node.stats.output(time.monotonic() - state.stamp_s)
+    why = watch.report(time.monotonic(), load_1min=os.getloadavg()[0], cores=os.cpu_count() or 1)
+    if why:
+        node.event("warning", why)
+    if config.lockstep:
+        while core.setpoint_seq != state.seq and not node.stopping:
+            if not arrived.wait(config.lockstep_resend_s) and core.setpoint_seq != state.seq:
+                node.log(f"lockstep: no setpoint for sample {state.seq} after {config.lockstep_resend_s} s; re-sending")
+                put_state(state)
 
 
 def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) -> None:

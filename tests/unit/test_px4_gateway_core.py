@@ -124,3 +124,23 @@ def test_hover_thrust_is_learned_from_steady_hover_and_calibrated_on_command():
         cal.on_state(state(k / 50), k / 50, offboard=True)
     assert cal.hover_thrust_norm == pytest.approx(0.55, abs=1e-9)
     assert any("calibrated" in text for _, text in cal.events)
+
+
+def test_motion_capture_lost_is_told_to_px4_until_it_is_back():
+    core = GatewayCore(GatewayConfig(pose_lost_after_s=0.1))
+    assert not core.pose_failed(5.0), "nothing forwarded yet: nothing to call lost"
+    core.on_pose(10.0)
+    assert not core.pose_failed(10.1)
+    assert core.pose_failed(10.15) and core.pose_failed(11.0)
+    assert [e[0] for e in core.events] == ["warning"] and "quality -1" in core.events[0][1]
+    core.on_pose(11.02)
+    assert not core.pose_failed(11.05)
+    assert core.events[-1] == ("info", "motion capture back after 1.02 s: PX4 fuses it again (odometry quality 100)")
+
+
+def test_while_motion_capture_is_lost_the_vehicle_is_flown_level_at_its_hover_thrust_on_its_heading():
+    core = GatewayCore(GatewayConfig(hover_thrust_norm=0.42))
+    assert core.level_setpoint() is None, "no setpoint yet: nothing to level"
+    sent = core.on_setpoint(setpoint(roll=0.3, pitch=-0.2, yaw=1.0, thrust=0.6), 1.0)
+    level = core.level_setpoint()
+    assert (level.roll_deg, level.pitch_deg, level.thrust_norm) == (0.0, 0.0, 0.42) and level.yaw_deg == sent.yaw_deg
