@@ -59,7 +59,8 @@ def add_parser(subparsers) -> None:
                    help="how the simulated world's motion capture reaches the source: direct, or natnet (a simulated "
                         "Motive streams NatNet on loopback, read by the motioncapture optitrack client as in a lab)")
     p.add_argument("--natnet-port", type=int, default=src.natnet.port,
-                   help="--mocap natnet: the first vehicle's Motive command port (data: +1; the next vehicle: +2)")
+                   help="--mocap natnet: the simulated Motive's command port (data: +1; with several vehicles one Motive "
+                        "streams them all, fed by their worlds on +2)")
     p.add_argument("--natnet-up-axis", default=src.natnet.up_axis, choices=("y", "z"), help="--mocap natnet: Motive's up axis")
     p.add_argument("--natnet-rate", type=float, default=src.natnet.rate_hz,
                    help="--mocap natnet: frame rate in Hz, 100-360 (0: the world's mocap model's, 100 Hz)")
@@ -123,9 +124,14 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         port = OFFBOARD_UDP_PORT + args.px4_instance + index if args.vehicle == "px4" else args.mavlink_port + index
         specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
     if role == "source" and args.mocap == "natnet":
-        specific += ["--mocap-stream", "natnet", "--natnet-port", str(args.natnet_port + 2 * index),
-                     "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost", args.natnet_lost,
-                     "--natnet-rate", str(args.natnet_rate)]
+        specific += ["--mocap-stream", "natnet", "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost",
+                     args.natnet_lost]
+        if shared_motive(args):  # one Motive streams every vehicle's rigid body, named after the vehicle
+            specific += ["--natnet-port", str(args.natnet_port), "--natnet-feed", str(motive_feed_port(args)),
+                         "--natnet-body-id", str(index + 1), "--rigid-body", vehicle,
+                         "--natnet-rate", str(motive_rate_hz(args))]
+        else:
+            specific += ["--natnet-port", str(args.natnet_port), "--natnet-rate", str(args.natnet_rate)]
     if role == "source" and args.vehicle == "px4":  # PX4 SITL instance `index` connects to 4560 + index
         specific += ["--link", "px4", "--px4-port", str(SIM_TCP_PORT + args.px4_instance + index), "--start", "ground"]
     elif role == "source" and args.vehicle == "mavlink":
@@ -229,6 +235,8 @@ def build_specs(args) -> list[ProcessSpec]:
                                                  ",".join(vehicles)),
                                      cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             continue
+        if role.name == "source" and shared_motive(args):  # the mocap system, before the sources that read it
+            specs.append(ProcessSpec("motive", motive_argv(args), cpus=loop_cpus))
         for i, vehicle in enumerate(vehicles):
             name = role.name if len(vehicles) == 1 else f"{vehicle}/{role.name}"
             finishes = role.name == "source" and args.duration > 0
@@ -239,6 +247,33 @@ def build_specs(args) -> list[ProcessSpec]:
                                          px4_argv(args.px4_instance + i, vehicle),
                                          cpus=loop_cpus))
     return specs
+
+
+def shared_motive(args) -> bool:
+    """``--mocap natnet`` with several vehicles: one simulated Motive (``sim/natnet_motive.py``) streams them all,
+    as a lab's one Motive PC does; with one vehicle its world runs its own."""
+    return args.mocap == "natnet" and len(args.names or ["uav1"]) > 1
+
+
+def motive_feed_port(args) -> int:
+    """The shared Motive's loopback UDP port for the worlds' samples: after its command and data ports."""
+    return args.natnet_port + 2
+
+
+def motive_rate_hz(args) -> float:
+    """The shared Motive's frame rate: ``--natnet-rate``, else the scenario's motion capture's (every world
+    samples at it)."""
+    from sim.scenarios import make_scenario
+
+    return float(args.natnet_rate or make_scenario(args.scenario).mocap.rate_hz)
+
+
+def motive_argv(args) -> tuple[str, ...]:
+    """The shared simulated Motive of :func:`shared_motive`: every vehicle's rigid body, IDs 1, 2, … in order."""
+    return python_module_argv("sim.natnet_motive", "--port", str(args.natnet_port), "--feed-port",
+                              str(motive_feed_port(args)), "--bodies", ",".join(args.names),
+                              "--rate", str(motive_rate_hz(args)), "--up-axis", args.natnet_up_axis,
+                              "--seed", str(args.seed))
 
 
 def px4_argv(instance: int, vehicle: str) -> tuple[str, ...]:

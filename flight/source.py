@@ -75,6 +75,10 @@ class NatNetStreamConfig:
     dropout: float = option(0.0, flag="--natnet-dropout", help="probability a frame is not sent")
     lost: str = option("", flag="--natnet-lost",
                        help="world-time windows with the rigid body untracked: 'start:duration,...' in s")
+    feed_port: int = option(0, flag="--natnet-feed",
+                            help="a shared simulated Motive's feed port (sim/natnet_motive.py, several vehicles on one "
+                                 "stream): the world feeds it; 0: the world runs its own Motive on --natnet-port")
+    body_id: int = option(1, flag="--natnet-body-id", help="the rigid body's ID in a shared Motive (1, 2, …)")
 
     def lost_windows(self) -> tuple[tuple[float, float], ...]:
         try:

@@ -8,7 +8,8 @@ the newest acts from the next period, as in the direct simulator), truth out (on
 period, ``seq`` counting the world's periods). Every mocap sample the world takes (noise and latency from
 the scenario's ``sim.mocap.MocapConfig``, its rate too unless ``--natnet-rate``) leaves as a NatNet frame at its exposure time
 plus that latency (:class:`sim.natnet_server.WorldStream`), through the jitter, dropouts and lost
-windows of ``--natnet-*``.
+windows of ``--natnet-*``. With ``--natnet-feed`` (several vehicles, one Motive) the world runs no server: it
+feeds its samples to the shared simulated Motive (:class:`sim.natnet_server.FeedStream`, ``sim/natnet_motive.py``).
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import time
 
 from flight.source import SimSource, SourceConfig
 from runtime.schema import SetpointMsg
-from sim.natnet_server import NatNetServer, NatNetServerConfig, StreamModel, WorldStream
+from sim.natnet_server import FeedStream, NatNetServer, NatNetServerConfig, StreamModel, WorldStream
 
 BODY_ID = 1
 
@@ -35,13 +36,16 @@ def run_world(conn, config: SourceConfig) -> None:
     core = SimSource(config, clock=time.monotonic, mocap_rate_hz=config.natnet.rate_hz)
     samples: list = []
     core.sim.mocap_out = samples
-    server = NatNetServer(NatNetServerConfig(bodies={config.mocap.rigid_body: BODY_ID}, command_port=config.natnet.port,
-                                             data_port=config.natnet.port + 1)).start()
+    nn = config.natnet
+    model = stream_model(config, core.scenario.mocap.latency_s)
+    server = None if nn.feed_port else NatNetServer(NatNetServerConfig(
+        bodies={config.mocap.rigid_body: BODY_ID}, command_port=nn.port, data_port=nn.port + 1)).start()
+    stream = None
     try:
         anchor_s = time.monotonic() - core.sim.t_s
-        stream = WorldStream(server, stream_model(config, core.scenario.mocap.latency_s), body_id=BODY_ID,
-                             anchor_s=anchor_s, seed=config.seed)
-        conn.send(("ready", server.command_port))
+        stream = (FeedStream(nn.feed_port, model, body_id=nn.body_id, anchor_s=anchor_s) if server is None else
+                  WorldStream(server, model, body_id=BODY_ID, anchor_s=anchor_s, seed=config.seed))
+        conn.send(("ready", nn.port if server is None else server.command_port))
         period = 1.0 / config.rate_hz
         next_tick = time.monotonic()
         while True:
@@ -65,4 +69,7 @@ def run_world(conn, config: SourceConfig) -> None:
     except (EOFError, BrokenPipeError, OSError):
         return
     finally:
-        server.close()
+        if server is not None:
+            server.close()
+        elif stream is not None:
+            stream.close()

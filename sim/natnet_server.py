@@ -201,6 +201,125 @@ class WorldStream:
         self.server.submit(mid + m.latency_s + jitter, mid, [natnet.BodyPose(self.body_id, pos, quat, m.tracked(t_s))])
 
 
+class FeedStream:
+    """The world's mocap samples → a shared simulated Motive (:class:`SharedMotive`, another process) over a
+    loopback UDP ``feed_port``: per sample, the rigid body's ``body_id``, its exposure at ``anchor_s + t_s``
+    (monotonic), its ENU position and ZYX Euler angles, whether it is tracked (``model.lost``) and the world's
+    mocap latency; what Motive does to frames (latency, jitter, dropouts, the up axis) is Motive's."""
+
+    def __init__(self, feed_port: int, model: StreamModel, *, body_id: int, anchor_s: float) -> None:
+        self.model, self.body_id, self.anchor_s = model, body_id, anchor_s
+        self._dest = ("127.0.0.1", feed_port)
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def sample(self, t_s: float, pos_enu_m, rpy_rad) -> None:
+        import msgpack
+
+        m = self.model
+        self._sock.sendto(msgpack.packb([self.body_id, self.anchor_s + t_s, [float(v) for v in pos_enu_m],
+                                         [float(v) for v in rpy_rad], m.tracked(t_s), m.latency_s]), self._dest)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class SharedMotive:
+    """One simulated Motive for several worlds, as a lab has one Motive PC for all its vehicles: each world
+    feeds its rigid body's samples (:class:`FeedStream`) to UDP ``feed_port`` on loopback; frames leave on
+    Motive's own clock at ``rate_hz``, each carrying every rigid body (``server``'s model order): the sample
+    nearest the frame's exposure instant (the worlds' clocks are not Motive's: at most half a frame apart at the
+    same rate), untracked with its last pose when its world has fed nothing within a frame and a half (counted:
+    ``stale``). A frame leaves the largest fed latency (at least a frame) after its exposure, plus
+    |N(0, ``model.jitter_std_s``)|, unless dropped (``model.dropout``). Malformed feed datagrams are counted
+    (``malformed_feed``) and dropped."""
+
+    def __init__(self, server: NatNetServer, model: StreamModel, *, rate_hz: float, feed_port: int, seed: int = 0) -> None:
+        self.server, self.model, self.period_s = server, model, 1.0 / rate_hz
+        self._rng = np.random.default_rng(seed)
+        self._samples: dict[int, list[tuple[float, tuple, tuple, bool, float]]] = {i: [] for i in server.config.bodies.values()}
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self.malformed_feed = self.dropped = self.stale = 0
+        self.latency_s = 0.0  # the largest the worlds fed (their mocap models')
+        self._feed = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._feed.bind(("127.0.0.1", feed_port))
+        self._feed.settimeout(0.2)
+        self._threads = [threading.Thread(target=self._read_feed, name="motive-feed", daemon=True),
+                         threading.Thread(target=self._frames, name="motive-clock", daemon=True)]
+
+    @property
+    def feed_port(self) -> int:
+        return self._feed.getsockname()[1]
+
+    def start(self) -> "SharedMotive":
+        for t in self._threads:
+            t.start()
+        return self
+
+    def close(self) -> None:
+        self._stopping.set()
+        for t in self._threads:
+            if t.is_alive():
+                t.join(timeout=2.0)
+        self._feed.close()
+
+    def _read_feed(self) -> None:
+        import msgpack
+
+        while not self._stopping.is_set():
+            try:
+                data = self._feed.recv(4096)
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            try:
+                body_id, mid_s, pos, rpy, tracked, latency_s = msgpack.unpackb(data)
+                sample = (float(mid_s), tuple(map(float, pos)), tuple(map(float, rpy)), bool(tracked), float(latency_s))
+                if body_id not in self._samples or len(sample[1]) != 3 or len(sample[2]) != 3 \
+                        or not all(np.isfinite((sample[0], *sample[1], *sample[2], sample[4]))):
+                    raise ValueError(body_id)
+            except (ValueError, TypeError, msgpack.UnpackException):
+                self.malformed_feed += 1
+                continue
+            with self._lock:
+                kept = self._samples[body_id]
+                kept.append(sample)
+                del kept[:-16]  # the newest 16: the world runs up to a control period ahead of its samples
+
+    def frame_bodies(self, mid_s: float) -> tuple[list[natnet.BodyPose], float]:
+        """Every fed body at exposure ``mid_s`` (monotonic) and the frame's latency (s)."""
+        bodies, latency = [], 0.0
+        with self._lock:
+            for body_id, kept in self._samples.items():
+                if not kept:
+                    continue
+                t, pos, rpy, tracked, lat = min(kept, key=lambda s: abs(s[0] - mid_s))
+                fresh = abs(t - mid_s) <= 1.5 * self.period_s
+                self.stale += not fresh
+                p, q = natnet.motive_pose(pos, rpy, self.model.up_axis)
+                bodies.append(natnet.BodyPose(body_id, p, q, tracked and fresh))
+                latency = max(latency, lat)
+        return bodies, latency
+
+    def _frames(self) -> None:
+        t0 = time.monotonic()
+        for k in itertools.count(1):
+            mid = t0 + k * self.period_s
+            # assembled when it is due to leave (the latency after its exposure, at least a frame): a world late by
+            # up to that much on a busy machine has still fed its sample nearest the exposure
+            if self._stopping.wait(max(0.0, mid + max(self.latency_s, self.period_s) - time.monotonic())):
+                return
+            bodies, self.latency_s = self.frame_bodies(mid)
+            if not bodies:
+                continue
+            if self.model.dropout > 0 and self._rng.random() < self.model.dropout:
+                self.dropped += 1
+                continue
+            jitter = abs(self._rng.normal(0.0, self.model.jitter_std_s)) if self.model.jitter_std_s > 0 else 0.0
+            self.server.submit(mid + max(self.latency_s, self.period_s) + jitter, mid, bodies)
+
+
 def free_udp_port() -> int:
     """A UDP port nobody on 127.0.0.1 holds now (for tests and benches that run servers side by side)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:

@@ -298,3 +298,47 @@ def test_the_source_flags_a_stopped_stream_and_a_lost_body_and_goes_on_when_they
     assert 0.9 < float(again[0].split("tracked again after ")[1].split(" s")[0]) < 1.2, again
     gaps = np.diff(states)
     assert len(states) > 0.8 * 4.0 * 50 and np.sum(gaps > 0.5) == 2, "states stop twice (stream stopped, body lost), then go on"
+
+
+def test_one_shared_motive_streams_every_fed_world_in_each_frame():
+    """Two worlds feed their rigid bodies (sim.natnet_server.FeedStream) to one simulated Motive
+    (SharedMotive): each frame the real client reads carries both, at the poses fed, in Motive's y-up frame;
+    a malformed feed datagram is counted and changes nothing."""
+    from sim.natnet_server import FeedStream, SharedMotive, StreamModel
+
+    with NatNetServer(NatNetServerConfig(bodies={"a": 1, "b": 2}, command_port=free_udp_port(),
+                                         data_port=free_udp_port())) as server:
+        motive = SharedMotive(server, StreamModel(), rate_hz=100.0, feed_port=free_udp_port()).start()
+        anchor = time.monotonic()
+        feeds = [FeedStream(motive.feed_port, StreamModel(), body_id=i, anchor_s=anchor) for i in (1, 2)]
+        stop_feeding = threading.Event()
+
+        def feed() -> None:  # as the worlds do: each sample up to a control period before its exposure
+            k = 0
+            while not stop_feeding.is_set():
+                t = k * 0.01
+                feeds[0].sample(t, (1.0, 2.0, 0.5), (0.0, 0.0, math.radians(90)))
+                feeds[1].sample(t, (-0.3, 0.4, 1.2), (math.radians(10), 0.0, 0.0))
+                k += 1
+                time.sleep(max(0.0, anchor + t - 0.015 - time.monotonic()))
+
+        feeder = threading.Thread(target=feed, daemon=True)
+        feeder.start()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto(b"\x93\x01\x02", ("127.0.0.1", motive.feed_port))  # msgpack [1, 2]: not a sample
+        client = Reader(server.command_port, 40)
+        try:
+            client.wait_connected()
+            got = client.frames()
+        finally:
+            stop_feeding.set()
+            feeder.join()
+            motive.close()
+            for f in feeds:
+                f.close()
+    assert len(got) == 40 and all(set(f) == {"a", "b"} for f in got), got[:2]
+    src = MocapSource(MocapConfig(frame="y_up"), 50.0, clock=time.monotonic)
+    for name, (pos_enu, _rpy) in {"a": KNOWN_POSES[0], "b": KNOWN_POSES[1]}.items():
+        np.testing.assert_allclose(src.enu_from_mocap @ np.array(got[-1][name][0]), pos_enu, atol=1e-5)
+    # a body is untracked in a frame only when its feeder was late by over a frame (a loaded machine's pause)
+    assert motive.malformed_feed == 1 and motive.stale <= 0.05 * 2 * server.sent, (motive.stale, server.sent)

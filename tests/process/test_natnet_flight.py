@@ -11,6 +11,7 @@ import numpy as np
 from recordings.reader import read_recording
 from sim.natnet_server import free_udp_port
 from runtime.client import command
+from runtime.schema import StateMsg, TruthMsg
 from tests.busutil import NesoUp, free_port, peer
 
 SEED, DURATION_S = 3, 20.0
@@ -113,3 +114,26 @@ def test_frames_at_360_hz_fly_on_the_50_hz_grid_without_a_rate_error(tmp_path):
     assert "discretisation is wrong" not in out, [line for line in out.splitlines() if "discretisation" in line]
     truth = flight.probe.get("truth")
     assert not any(m.crashed for m in truth) and abs(truth[-1].pos_enu_m[2] - 1.0) < 0.05
+
+
+def test_two_vehicles_fly_on_one_simulated_motive(tmp_path):
+    """`neso up --mocap natnet --name a --name b`: one Motive process streams both rigid bodies (named after
+    the vehicles) in one stream, each source reads its own from it, both hover."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    flight = NesoUp("--mocap", "natnet", "--natnet-port", str(free_udp_port()), "--name", "a", "--name", "b",
+                    "--duration", "10", "--mission", "hover", "--hub", endpoint, "--no-dashboard", "--no-trainer",
+                    "--recordings-dir", str(tmp_path), bus=peer(endpoint), topics=())
+    states = {v: [] for v in ("a", "b")}
+    truth = {v: [] for v in ("a", "b")}
+    flight.s.declare_subscriber("neso/*/state", lambda s: states[str(s.key_expr).split("/")[1]].append(
+        StateMsg.from_bytes(s.payload.to_bytes())))
+    flight.s.declare_subscriber("neso/*/truth", lambda s: truth[str(s.key_expr).split("/")[1]].append(
+        TruthMsg.from_bytes(s.payload.to_bytes())))
+    out = finish(flight)
+    assert out.count("simulated Motive: NatNet 4.1") == 1, "one Motive for both"
+    assert out.count("rigid bodies ['a', 'b']") == 2, "each source sees both streamed"
+    for v in ("a", "b"):
+        assert len(states[v]) > 400 and {m.source for m in states[v]} == {"mocap"}, (v, len(states[v]))
+        done = [line for line in out.splitlines() if f"{v}/source" in line and "done:" in line]
+        assert done and int(done[0].split(" frames without")[0].split(", ")[-1]) <= 5, done
+        assert not any(m.crashed for m in truth[v]) and abs(truth[v][-1].pos_enu_m[2] - 1.0) < 0.05, v
