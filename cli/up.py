@@ -310,7 +310,8 @@ def run(args) -> int:
     print(f"neso up: hub {hub_endpoint(args)}{security}; vehicles {vehicles} (keys neso/<vehicle>/...); scenario {args.scenario}, "
           f"mission {args.mission}, {'lockstep' if args.lockstep else 'real time'} at {args.rate:g} Hz", flush=True)
     if args.mocap == "natnet":
-        print(f"  motion capture:   NatNet from a simulated Motive on 127.0.0.1:{args.natnet_port} (+2 per vehicle), "
+        bodies = f"one Motive streaming rigid bodies {vehicles}" if shared_motive(args) else "a simulated Motive"
+        print(f"  motion capture:   NatNet from {bodies} on 127.0.0.1:{args.natnet_port}, "
               f"{args.natnet_up_axis}-up, read by the motioncapture optitrack client", flush=True)
     loop_cpus, other_cpus = cpu_sets(isolating(args))
     if loop_cpus:
