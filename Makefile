@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 CHROMIUM := /usr/bin/chromium
 DEMO_S ?= 0
 
-.PHONY: setup px4 demo demo-tdr test test-fast bench experiment clean
+.PHONY: bench-quick setup px4 demo demo-tdr test test-fast bench experiment clean
 
 setup: $(STAMP) $(CHROMIUM) px4
 
@@ -52,6 +52,10 @@ test-fast: setup
 
 bench: setup
 	$(PY) -m bench
+
+# A subset of `make bench` in under 5 minutes (README "Benchmarks"); the full run's sections are listed as not run.
+bench-quick: setup
+	$(PY) -m bench --quick
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -19,13 +19,18 @@ the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
 (:mod:`bench.gateway`, ~25 s).
+Then real PX4 v1.16.0 SITL in the loop with the dashboard, hovering: the world's real-time factor and the setpoints
+missed in 60 s (:mod:`bench.px4`, ~100 s).
 Then motion capture over NatNet: a frame leaving the simulated Motive → the state on the bus, at 120 and 360 Hz
 frames, p50/p99 (:mod:`bench.natnet`, ~20 s).
 Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashboard`, ~90 s).
 Then importing PX4 logs: the shared CubeOrange log and a 20-minute log (:mod:`bench.px4_import`, ~40 s).
 Then the stability certificates: max certified L_N of each method over a gain grid, the cost of
 ``best_certificate`` cold and cached, and each bound against a simulated worst case (:mod:`bench.certificate`, ~1 min).
-Pass ``--quick`` to skip the paper pipeline and shorten every section.
+Pass ``--quick`` (``make bench-quick``) for a subset a user runs in under 5 minutes: the core rows without the
+paper pipeline, the bus latency, the gateway, PX4 SITL in the loop, NatNet, PX4 log import and the certificates,
+each shortened; the rest is listed as not run. Every run ends with a table of each section's wall time
+(``"section_wall_s"`` in ``out/bench.json``).
 
 Every table is also written to ``out/bench.json`` as it is printed (``{"tables": [{"columns",
 "rows"}], "simulator_x_real_time": {...}}``), so a run cut short keeps what it measured.
@@ -69,11 +74,10 @@ def bench_tick() -> tuple[float, float]:
     return _per_call_us(tick, 2000), _per_call_us(lambda: net.predict(meas.pos_enu_m.repeat(2)[:5]), 20000)
 
 
-def main(argv: list[str]) -> int:
-    from bench.bus_latency import COLUMNS, FOOTNOTE, bus_latency_rows
+def core_section(quick: bool) -> None:
+    """The simulator's speed, the tick, inference, the step objects and (not ``quick``) the paper pipeline."""
     from sim.quadrotor import sim_speed_x_real_time
 
-    quick = "--quick" in argv
     rows = []
     speed_x = sim_speed_x_real_time(20.0)
     RESULTS["simulator_x_real_time"] = {"hover_s": 20.0, "x_real_time": round(speed_x, 1), "target_x": SIM_TARGET_X,
@@ -99,63 +103,120 @@ def main(argv: list[str]) -> int:
         for stage, secs in run.details["timing_s"].items():
             rows.append((f"  stage {stage}", f"{secs:.1f} s"))
     print_table(("benchmark", "result"), rows)
-    print(flush=True)
+
+
+def bus_section(quick: bool) -> None:
+    from bench.bus_latency import COLUMNS, FOOTNOTE, bus_latency_rows
+
     print_table(COLUMNS, bus_latency_rows(flight_s=10.0 if quick else 60.0, floor_s=3.0 if quick else 15.0))
     print(FOOTNOTE)
-    from bench.hotpath import COLUMNS as HOTPATH_COLUMNS, hotpath_rows
 
-    print(flush=True)
-    hot: dict = {}
-    print_table(HOTPATH_COLUMNS, hotpath_rows(10.0 if quick else 60.0, hot, fleet_s=10.0 if quick else 30.0))
+
+def hotpath_section(quick: bool) -> None:
+    """The hot path, subscriber handlers and Zenoh's transport choices (``"bus"``, ``"fleet"``)."""
     from bench.handlers import COLUMNS as HANDLER_COLUMNS, handler_rows
-
-    print(flush=True)
-    print_table(HANDLER_COLUMNS, handler_rows(10.0 if quick else 20.0, hot))  # into hot["bus"]
+    from bench.hotpath import COLUMNS as HOTPATH_COLUMNS, hotpath_rows
     from bench.transport import COLUMNS as TRANSPORT_COLUMNS, transport_rows
 
+    hot: dict = {}
+    print_table(HOTPATH_COLUMNS, hotpath_rows(10.0 if quick else 60.0, hot, fleet_s=10.0 if quick else 30.0))
+    print(flush=True)
+    print_table(HANDLER_COLUMNS, handler_rows(10.0 if quick else 20.0, hot))  # into hot["bus"]
     print(flush=True)
     print_table(TRANSPORT_COLUMNS, transport_rows(10.0 if quick else 20.0, 1 if quick else 3, hot))  # hot["bus"]
     write_results(hot)
-    from bench.secure import COLUMNS as SECURE_COLUMNS, record, secure_rows
 
-    print(flush=True)
-    secure_results: dict = {}
-    print_table(SECURE_COLUMNS, secure_rows(flight_s=6.0 if quick else 15.0, floor_s=3.0 if quick else 6.0,
-                                             rounds=1 if quick else 2, results=secure_results))
-    record("secure", secure_results)
-    from bench.recording import COLUMNS as RECORDING_COLUMNS, recording_rows
 
-    print(flush=True)
-    print_table(RECORDING_COLUMNS, recording_rows(quick))
+def secure_section(quick: bool) -> None:
+    from bench.secure import COLUMNS, record, secure_rows
 
-    from bench.tdr import COLUMNS as TDR_COLUMNS, tdr_rows
+    found: dict = {}
+    print_table(COLUMNS, secure_rows(flight_s=6.0 if quick else 15.0, floor_s=3.0 if quick else 6.0,
+                                     rounds=1 if quick else 2, results=found))
+    record("secure", found)
 
-    print(flush=True)
-    print_table(TDR_COLUMNS, tdr_rows(quick))
 
-    from bench.gateway import COLUMNS as GATEWAY_COLUMNS, gateway_rows
+def recording_section(quick: bool) -> None:
+    from bench.recording import COLUMNS, recording_rows
 
-    print(flush=True)
-    print_table(GATEWAY_COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
+    print_table(COLUMNS, recording_rows(quick))
 
-    from bench.natnet import COLUMNS as NATNET_COLUMNS, natnet_rows
 
-    print(flush=True)
-    print_table(NATNET_COLUMNS, natnet_rows(duration_s=2.0 if quick else 4.0))
+def tdr_section(quick: bool) -> None:
+    from bench.tdr import COLUMNS, tdr_rows
 
-    print(flush=True)
-    from bench.dashboard import COLUMNS as DASHBOARD_COLUMNS, dashboard_rows
+    print_table(COLUMNS, tdr_rows(quick))
 
-    print_table(DASHBOARD_COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
 
-    print(flush=True)
-    from bench.px4_import import COLUMNS as PX4_IMPORT_COLUMNS, px4_import_rows
+def gateway_section(quick: bool) -> None:
+    from bench.gateway import COLUMNS, gateway_rows
 
-    print_table(PX4_IMPORT_COLUMNS, px4_import_rows(quick))
+    print_table(COLUMNS, gateway_rows(duration_s=5.0 if quick else 20.0))
+
+
+def px4_section(quick: bool) -> None:
+    from bench.px4 import COLUMNS, px4_rows
+
+    found: dict = {}
+    print_table(COLUMNS, px4_rows(quick, found))
+    write_results(found)
+
+
+def natnet_section(quick: bool) -> None:
+    from bench.natnet import COLUMNS, natnet_rows
+
+    print_table(COLUMNS, natnet_rows(duration_s=2.0 if quick else 4.0))
+
+
+def dashboard_section(quick: bool) -> None:
+    from bench.dashboard import COLUMNS, dashboard_rows
+
+    print_table(COLUMNS, dashboard_rows(flight_s=6.0 if quick else 12.0))
+
+
+def px4_import_section(quick: bool) -> None:
+    from bench.px4_import import COLUMNS, px4_import_rows
+
+    print_table(COLUMNS, px4_import_rows(quick))
+
+
+def certificate_section(quick: bool) -> None:
     from bench.certificate import print_tables
 
-    print(flush=True)
     print_tables(print_table)
+
+
+# (name, what it measures, in --quick) in the order they run
+SECTIONS = (
+    ("core", core_section, True),
+    ("bus latency", bus_section, True),
+    ("hot path, handlers, transport", hotpath_section, False),
+    ("secure bus", secure_section, False),
+    ("recording", recording_section, False),
+    ("TDR loop", tdr_section, False),
+    ("PX4 gateway", gateway_section, True),
+    ("PX4 SITL in the loop", px4_section, True),
+    ("NatNet", natnet_section, True),
+    ("dashboard", dashboard_section, False),
+    ("PX4 log import", px4_import_section, True),
+    ("certificates", certificate_section, True),
+)
+
+
+def main(argv: list[str]) -> int:
+    quick = "--quick" in argv
+    spent = []
+    for name, section, in_quick in SECTIONS:
+        if quick and not in_quick:
+            spent.append((name, "not run (--quick)"))
+            continue
+        t0 = time.perf_counter()
+        section(quick)
+        print(flush=True)
+        spent.append((name, f"{time.perf_counter() - t0:.0f} s"))
+    print_table(("section" + (" (--quick)" if quick else ""), "wall time"), spent)
+    RESULTS["section_wall_s"] = {name: took for name, took in spent}
+    write_results()
     return 0
 
 

@@ -1,24 +1,55 @@
-"""PX4's own offboard-loss failsafe with real PX4 v1.16.0 SITL: `neso up --vehicle px4`, a take-off through the
-controller, then kill -9 of the gateway (a flight of its own: the ``flight`` fixture is per module)."""
+"""Failsafes with real PX4 v1.16.0 SITL: `neso up --vehicle px4`, a take-off through the controller, then kill -9
+of the estimator (the controller's local ESO flies on; the launcher restarts it) and then of the gateway (PX4's
+own offboard-loss failsafe) (a flight of its own: the ``flight`` fixture is per module)."""
 from __future__ import annotations
 
 import os
 import signal
 import time
 
+import numpy as np
+
 from tests.busutil import role_pid, wait_for
 
 
-def test_the_gateway_killed_mid_hover_px4s_own_failsafe_within_com_of_loss_t(flight):
-    """kill -9 of the gateway mid-hover: its setpoint stream stops; PX4's own offboard-loss action (COM_OF_LOSS_T
-    1 s, then COM_OBL_RC_ACT: Land, sim/px4/neso_quad.params) within 1.5 s.
-    What follows is printed: the modes the restarted gateway sees and where the vehicle ends."""
+def airborne(flight) -> None:
+    """The operator's flow to a hover at 1 m, once per flight."""
+    if flight.probe.get("truth") and flight.probe.get("truth")[-1].pos_enu_m[2] > 0.9:
+        return
     wait_for("PX4 says it is ready for takeoff", lambda: flight.log("Ready for takeoff"), 60)
     wait_for("offboard accepted", lambda: flight.cmd("px4_gateway", "offboard_start").ok, 30, 1.0)
     wait_for("PX4 arms", lambda: flight.cmd("px4_gateway", "arm").ok, 60, 1.0)
     assert flight.cmd("controller", "arm").ok and flight.cmd("controller", "takeoff").ok
     wait_for("airborne", lambda: flight.probe.get("truth")[-1].pos_enu_m[2] > 0.9, 30)
     time.sleep(2.0)
+
+
+def test_the_estimator_killed_mid_hover_the_controller_flies_its_local_eso_through_px4(flight):
+    """kill -9 of the estimator: within 3 periods the controller's setpoints come from its local ESO, PX4 stays in
+    offboard and the vehicle at its height; the restarted estimator's estimates fly again."""
+    airborne(flight)
+    start = flight.probe.get("setpoint")[-1].seq
+    old = role_pid(flight.proc.pid, "estimator")
+    os.kill(old, signal.SIGKILL)
+    local = flight.probe.wait_for("setpoint", lambda m: m.estimate_source == "local_eso" and m.seq > start, 2.0)
+    last = max(m.seq for m in flight.probe.get("setpoint") if m.estimate_source == "estimator" and m.seq < local.seq)
+    back = flight.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > local.seq, 30.0)
+    time.sleep(1.0)
+    assert role_pid(flight.proc.pid, "estimator") != old, "the launcher restarted it"
+    truth = [m for m in flight.probe.get("truth") if m.seq >= start]
+    z = np.array([m.pos_enu_m[2] for m in truth])
+    print(f"\nestimator killed: local ESO after {local.seq - last} samples, estimator back {back.seq - local.seq} "
+          f"samples later; height {z.min():.2f}–{z.max():.2f} m meanwhile")
+    assert local.seq - last <= 4, (last, local.seq)
+    assert flight.telemetry().flight_mode == "offboard" and not any(m.crashed for m in truth)
+    assert np.abs(z - 1.0).max() < 0.15, "the height held on the local ESO"
+
+
+def test_the_gateway_killed_mid_hover_px4s_own_failsafe_within_com_of_loss_t(flight):
+    """kill -9 of the gateway mid-hover: its setpoint stream stops; PX4's own offboard-loss action (COM_OF_LOSS_T
+    1 s, then COM_OBL_RC_ACT: Land, sim/px4/neso_quad.params) within 1.5 s.
+    What follows is printed: the modes the restarted gateway sees and where the vehicle ends."""
+    airborne(flight)
     before = len(flight.output)
     killed = time.monotonic()
     os.kill(role_pid(flight.proc.pid, "px4_gateway"), signal.SIGKILL)
