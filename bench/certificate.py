@@ -26,14 +26,14 @@ def grid_rows(kps=KP, kds=KD, omegas=OMEGA_O) -> list[tuple[str, ...]]:
     """One row per gain set: the max certified ``L_N`` of each method, tight's and the LMI's solve time (cold
     for those gains; the LMI's cvxpy programs already compiled, as in any process after its first call)."""
     from neso import certificate as c
-    from neso.certificate import lmi, roles, tight
+    from neso.certificate import lmi, roles, tight as tight_method
 
     lmi._lmi_programs("full"), lmi._lmi_programs("block"), roles._programs()  # compile once, outside the timings
     rows = []
     for kp, kd, w in itertools.product(kps, kds, omegas):
         base = c.CertificateInputs(kp=kp, kd=kd, omega_o=w, lipschitz=0.0)
         lit = c.certify_literal(base).max_certified_lipschitz
-        tight._optimise_tight.cache_clear()
+        tight_method._optimise_tight.cache_clear()
         t0 = time.perf_counter()
         tight = c.certify_tight(base, optimise_bound=False).max_certified_lipschitz
         t_tight = time.perf_counter() - t0

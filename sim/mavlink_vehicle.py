@@ -13,10 +13,13 @@ truth, with the true hover thrust, through the same attitude/thrust interface th
 setpoints use): **hold** (AUTO.LOITER) keeps the position where it was entered; **take-off**
 (AUTO.TAKEOFF) climbs 0.5 m/s to ``takeoff_height_m`` above the ground, then holds; **land**
 (AUTO.LAND) descends at 0.5 m/s; once at rest on the ground it idles, level, without position
-control (PX4's land detector), and disarms 1 s of vehicle time later (PX4's auto-disarm);
+control (PX4's land detector), and disarms 2 s of vehicle time later (PX4's COM_DISARM_LAND);
 **offboard** applies the newest SET_ATTITUDE_TARGET, and if none has come for
-``offboard_loss_s`` (PX4's COM_OF_LOSS_T, default 1 s) it switches to hold by itself (the
-last line of defence behind the gateway's own failsafe). Disarmed: motors off.
+``offboard_loss_s`` (PX4's COM_OF_LOSS_T, default 1 s) it lands by itself (COM_OBL_RC_ACT as this world's
+PX4 airframe sets it: the last line of defence behind the gateway's own failsafe) and, as PX4 does, returns to
+offboard when setpoints stream again. Disarmed: motors off. It says what PX4 v1.16 says in STATUSTEXT for the
+same events (arming, disarming, land, landing detected, the failsafe). Where it still differs from PX4 SITL:
+README, "Real PX4 in the loop".
 
 Everything received is logged (``log``, and as JSON lines to ``log_path`` if given) with its
 ``time.monotonic()`` arrival stamp, so tests can check what actually reached the vehicle.
@@ -67,7 +70,7 @@ class VehicleConfig:
     climb_speed_mps: float = 0.5
     land_speed_mps: float = 0.5
     offboard_loss_s: float = 1.0
-    disarm_after_landing_s: float = 1.0
+    disarm_after_landing_s: float = 2.0  # PX4's COM_DISARM_LAND default
     battery_full_v: float = 16.8
     battery_empty_v: float = 13.2
     battery_minutes: float = 10.0
@@ -95,6 +98,7 @@ class MavlinkVehicle:
         self._position = PositionController(ctrl)
         self._target: np.ndarray | None = None
         self._touchdown_s: float | None = None  # vehicle time (s) AUTO.LAND came to rest on the ground
+        self._offboard_lost = False  # in the offboard-loss failsafe (its Land), which setpoints streaming again end
         self._home_enu_m: np.ndarray | None = None
         self._last_meas: StateMeasurement | None = None
         self._on_ground = True
@@ -159,11 +163,14 @@ class MavlinkVehicle:
             params += [float(msg.param5), float(msg.param6), float(msg.param7)]
         result = mavlink.MAV_RESULT_ACCEPTED if cmd in ACCEPTED_COMMANDS else mavlink.MAV_RESULT_UNSUPPORTED
         with self.lock:
+            said = ""
             if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
                 if params[0] >= 0.5:
                     self.armed, self._touchdown_s = True, None
+                    said = "Armed by external command"
                 elif self._on_ground or params[1] == 21196:  # 21196: forced disarm
                     self.armed = False
+                    said = "Disarmed by external command"
                 else:
                     result = mavlink.MAV_RESULT_DENIED  # PX4 refuses to disarm in the air
             elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
@@ -179,10 +186,13 @@ class MavlinkVehicle:
                     result = mavlink.MAV_RESULT_DENIED
             elif cmd == mavlink.MAV_CMD_NAV_LAND:
                 self._set_mode(MAIN_AUTO, SUB_LAND)
+                said = "Landing at current position"
             state = (self.armed, self.mode_name)
         self._record({"t": now, "kind": "command", "command": cmd, "params": params, "result": int(result),
                       "armed": state[0], "mode": state[1]})
         self._send(lambda m: m.command_ack_send(cmd, result, 100, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        if said:
+            self._say(mavlink.MAV_SEVERITY_INFO, said)
         if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             self._send_autopilot_version()
         if cmd == mavlink.MAV_CMD_DO_SET_MODE or cmd in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
@@ -212,11 +222,19 @@ class MavlinkVehicle:
             if not self.armed:
                 self._target = None
                 return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
+            fresh = now - self.offboard_setpoint_s <= self.config.offboard_loss_s
+            if self._offboard_lost and fresh and (self.main_mode, self.sub_mode) == (MAIN_AUTO, SUB_LAND):
+                self._set_mode(MAIN_OFFBOARD, 0)  # PX4 ends its offboard-loss failsafe when setpoints stream again
+                self._record({"t": now, "kind": "failsafe", "what": "setpoints again: back to offboard"})
             if self.main_mode == MAIN_OFFBOARD:
-                if now - self.offboard_setpoint_s <= self.config.offboard_loss_s:
+                if fresh:
+                    self._offboard_lost = False
                     return self.offboard_setpoint
-                self._record({"t": now, "kind": "failsafe", "what": "offboard loss: hold"})
-                self._set_mode(MAIN_AUTO, SUB_LOITER)
+                # PX4's offboard-loss action COM_OBL_RC_ACT, Land in this world's airframe (sim/px4/neso_quad.params)
+                self._record({"t": now, "kind": "failsafe", "what": "offboard loss: land"})
+                self._say(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated")
+                self._set_mode(MAIN_AUTO, SUB_LAND)
+                self._offboard_lost = True
             if self._target is None:
                 self._target = np.array(meas.pos_enu_m, dtype=float)
                 self._position.reset(np.array([0.0, 0.0, self._position.config.vehicle.hover_thrust_n]))
@@ -232,14 +250,16 @@ class MavlinkVehicle:
             elif self.sub_mode == SUB_LAND:
                 if on_ground and self._touchdown_s is None:
                     self._touchdown_s = meas.t_s
+                    self._say(mavlink.MAV_SEVERITY_INFO, "Landing detected")
                 if self._touchdown_s is not None:
                     # Landed stays landed (PX4's land detector): motors idle, level, no position control. Flying
                     # the position loop on the ground tilts the vehicle up to the tilt limit (a few mm of position
                     # error over a vertical force at its minimum), and it rocked, hopped and tipped over.
                     if meas.t_s - self._touchdown_s >= self.config.disarm_after_landing_s:
-                        self.armed, self._touchdown_s = False, None
+                        self.armed, self._touchdown_s, self._offboard_lost = False, None, False
                         self._set_mode(MAIN_AUTO, SUB_READY)  # the next arming starts from "ready", not from "land"
                         self._record({"t": now, "kind": "disarmed", "why": "landed"})
+                        self._say(mavlink.MAV_SEVERITY_INFO, "Disarmed by landing")
                     return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
                 target[2] = self._target[2] - self.config.land_speed_mps * self.dt_s
                 vel[2] = -self.config.land_speed_mps
@@ -267,6 +287,11 @@ class MavlinkVehicle:
         caps = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
                 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT)
         self._send(lambda m: m.autopilot_version_send(caps, 0, 0, 0, 0, bytes(8), bytes(8), bytes(8), 0, 0, 1))
+
+    def _say(self, severity: int, text: str) -> None:
+        """STATUSTEXT in PX4 v1.16's words for the same event (commander's mavlink_log_*), logged too."""
+        self._record({"t": time.monotonic(), "kind": "statustext", "text": text})
+        self._send(lambda m: m.statustext_send(severity, text.encode()[:50]))
 
     def publish(self, meas: StateMeasurement, *, t_s: float, body_rates_frd_rps=(0.0, 0.0, 0.0)) -> None:
         """Telemetry after a simulator step: fast messages every call, slow ones at 1–10 Hz."""

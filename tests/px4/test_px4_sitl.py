@@ -8,11 +8,13 @@ test_px4_failsafe.py, a flight of its own: re-arming after this landing was refu
 Accelerometer Bias".) Figures are printed (pytest -s) for the README."""
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 
 import numpy as np
 
-from tests.busutil import wait_for
+from tests.busutil import REPO, wait_for
 
 def test_px4_boots_on_the_world_and_fuses_motion_capture(flight):
     wait_for("PX4 connects to the world's simulator port", lambda: flight.log("PX4 connected from"), 60)
@@ -70,3 +72,10 @@ def test_the_flight_is_recorded_and_reads_back(flight):
     said = [m.status_text for m in rec.channel("telemetry").messages() if m.status_text]
     assert said, "PX4's own status texts reach the telemetry (and the dashboard)"
     print(f"recorded: {len(rec.channel('truth'))} samples; PX4 said, e.g. {said[-1]!r}")
+    # it replays as any flight does: another estimator configuration flown offline on what was recorded
+    replay = subprocess.run([sys.executable, "-m", "cli.main", "replay", str(path), "--what-if", "pathway=eso"],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert replay.returncode == 0 and "what-if pathway=eso over" in replay.stdout, replay.stdout + replay.stderr
+    samples = int(replay.stdout.split(" over ")[1].split()[0])
+    assert samples > 400, replay.stdout
+    print(replay.stdout.strip())
