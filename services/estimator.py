@@ -34,6 +34,7 @@ def run(args, bus) -> int:
     from runtime.launcher import EXIT_CONFIG
     from runtime.node import Node, run_node
     from runtime.params import ParamSet
+    from services.certificate_cache import warm as warm_certificate
 
     config = config_from_args(args)
     try:
@@ -43,6 +44,7 @@ def run(args, bus) -> int:
               "--network FILE, or '' for none)", file=sys.stderr, flush=True)
         return EXIT_CONFIG
     default_gains = (ControlConfig().kp[2], ControlConfig().kd[2])
+    warm_certificate(*default_gains, config.omega_o_rps)  # before the network's verdict: no SDP when known before
     network, startup_event = startup_network(config, loaded, default_gains)
     choice = NetworkChoice(network, source if network is not None else "none", config.network_dir)
     core = EstimatorCore(config, network, choice, vehicle=args.vehicle, clock=time.monotonic)

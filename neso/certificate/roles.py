@@ -263,12 +263,43 @@ class _Frontier:
     tau: float
 
 
+_ADOPTED: dict[tuple[float, float, float], _Frontier] = {}  # frontiers found before, verified here (adopt_frontier)
+
+
+def adopt_frontier(kp: float, kd: float, omega_o: float, lmax: float, p, tau: float) -> bool:
+    """Take a frontier found before — the largest ``L_s`` ``lmax`` and its certificate ``(P (5×5), τ)`` — for
+    these gains without solving an SDP, iff it verifies here in numpy exactly as the bisection's own do (and
+    ``lmax`` is below the exact ``1/‖G‖_∞``). False, and nothing adopted, otherwise. Call before the gains'
+    first :func:`max_certified_state_lipschitz_verified`; the certificate is only ever as good as this check."""
+    key = (float(kp), float(kd), float(omega_o))
+    try:
+        p = np.array(p, dtype=float)
+        lmax, tau = float(lmax), float(tau)
+        inputs = RoleInputs(*key, lipschitz_state=lmax)
+    except (TypeError, ValueError):
+        return False
+    if p.shape != (5, 5) or not (0.0 < lmax <= max_certified_state_lipschitz(*key)) \
+            or not _check(inputs, p, tau) > _MARGIN:
+        return False
+    _ADOPTED[key] = _Frontier(lmax, max_certified_state_lipschitz(*key), p, tau)
+    return True
+
+
+def frontier_certificate(kp: float, kd: float, omega_o: float) -> tuple[float, np.ndarray | None, float]:
+    """``(lmax, P, τ)`` of the gains' verified frontier (solved, or adopted), for :func:`adopt_frontier` later."""
+    f = _frontier(float(kp), float(kd), float(omega_o))
+    return f.lmax, f.p, f.tau
+
+
 @functools.lru_cache(maxsize=256)
 def _frontier(kp: float, kd: float, omega_o: float) -> _Frontier:
-    """Bisection on "the SDP at L_s is strictly feasible and its (P, τ) verifies in numpy" below 1/‖G‖_∞
-    (monotone: a certificate at L is one at every smaller L), to a relative 1e-6."""
+    """An adopted frontier (:func:`adopt_frontier`), else bisection on "the SDP at L_s is strictly feasible and
+    its (P, τ) verifies in numpy" below 1/‖G‖_∞ (monotone: a certificate at L is one at every smaller L), to a
+    relative 1e-6."""
     from neso.certificate.lmi import _lmi_solve
 
+    if (kp, kd, omega_o) in _ADOPTED:
+        return _ADOPTED[(kp, kd, omega_o)]
     exact = max_certified_state_lipschitz(kp, kd, omega_o)
     with _LOCK:
         prog = _programs()
