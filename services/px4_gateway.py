@@ -16,7 +16,8 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
 - **stale setpoints**: in offboard, ``stale_hold_s`` without a setpoint while at least
   ``stale_states`` states arrived unanswered (the controller is gone, not the whole machine
   stalled), or ``stale_max_s`` without a setpoint whatever the states do → command hold;
-  ``land_after_s`` later, unless an operator took over (``offboard_start``), → command land.
+  ``land_after_s`` later (at once if the vehicle refused the hold, as PX4 without a global position does),
+  unless an operator took over (``offboard_start``), → command land.
   Setpoints coming back (a restarted controller) do not resume offboard by themselves, and setpoints reach the
   vehicle only in offboard or while it is not known armed and not in a mode of its own (real PX4 returns to
   offboard by itself when they stream again after its own failsafe). PX4's own offboard-loss failsafe stays the
@@ -161,6 +162,13 @@ class GatewayCore:
                                            "commanding land"))
             return "land"
         return ""
+
+    def hold_refused(self, why: str) -> None:
+        """The vehicle refused the failsafe's hold (PX4 without a global position does): land at the next check
+        instead of ``land_after_s`` later."""
+        if self.failsafe == "hold":
+            self._failsafe_since_s = -math.inf
+            self.events.append(("warning", f"the vehicle refused hold ({why}): commanding land now"))
 
     def clear_failsafe(self) -> None:
         """An operator took over (offboard start, or an explicit mode command)."""
@@ -478,8 +486,13 @@ class Px4Link:
                         self._send_attitude(level)
                 self._drain_events()
             if action and self.system is not None:
-                self.actions.put((action, lambda result, a=action: self.node.event(
-                    "warning" if result[0] else "error", f"failsafe {a}: {result[1]}")))
+                self.actions.put((action, lambda result, a=action: self._failsafe_done(a, result)))
+
+    def _failsafe_done(self, action: str, result: tuple[bool, str]) -> None:
+        self.node.event("warning" if result[0] else "error", f"failsafe {action}: {result[1]}")
+        if action == "hold" and not result[0]:
+            with self.node.lock:
+                self.core.hold_refused(result[1])
 
     def _telemetry_loop(self) -> None:
         put = self.node.publisher("telemetry")

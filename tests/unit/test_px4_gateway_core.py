@@ -144,3 +144,14 @@ def test_while_motion_capture_is_lost_the_vehicle_is_flown_level_at_its_hover_th
     sent = core.on_setpoint(setpoint(roll=0.3, pitch=-0.2, yaw=1.0, thrust=0.6), 1.0)
     level = core.level_setpoint()
     assert (level.roll_deg, level.pitch_deg, level.thrust_norm) == (0.0, 0.0, 0.42) and level.yaw_deg == sent.yaw_deg
+
+
+def test_a_hold_the_vehicle_refuses_is_followed_by_land_at_once():
+    """PX4 without a global position refuses Hold ("Switching to Hold is currently not available"): the
+    failsafe lands at its next check instead of land_after_s later."""
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_max_s=0.5, land_after_s=3.0))
+    core.on_setpoint(setpoint(), 10.0)
+    assert core.check_stale(10.6, offboard=True, armed=True) == "hold"
+    core.hold_refused("COMMAND_DENIED")
+    assert core.check_stale(10.62, offboard=True, armed=True) == "land" and core.failsafe == "land"
+    assert "refused hold (COMMAND_DENIED): commanding land now" in core.events[-2][1]
