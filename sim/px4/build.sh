@@ -8,8 +8,8 @@
 # PX4 can run; `neso up --vehicle px4` then says where the binary was looked for).
 #
 # Kept: the stripped bin/px4 with its symlinks and etc/ (~9 MB) in $NESO_PX4_HOME (default
-# ~/.cache/neso/px4-v1.16.0); the 382 MB build tree is deleted. A stamp (.built, naming the source)
-# makes a second run a no-op; a changed source rebuilds. ~4 min of every core (255 s measured on 2):
+# ~/.cache/neso/px4-v1.16.0); the 382 MB build tree is deleted. A stamp (.built, naming the source: the
+# tarball's SHA-256, or $PX4_SRC's git describe and path) makes a second run a no-op; a changed source rebuilds. ~4 min of every core (255 s measured on 2):
 # on a shared machine run the first build under the machine's lock, e.g. `flock /tmp/neso-heavy.lock make px4`.
 set -euo pipefail
 
@@ -25,7 +25,8 @@ if [ -n "${PX4_SRC:-}" ]; then
         || { echo "px4: PX4_SRC=$PX4_SRC is no PX4-Autopilot tree (no Makefile, src/modules)" >&2; exit 2; }
     source_id="PX4_SRC $(cd "$PX4_SRC" && git describe --always --tags --dirty 2>/dev/null || echo untracked) $PX4_SRC"
 elif [ -f "$tarball" ]; then
-    source_id="tarball $(stat -c '%s %Y' "$tarball") $tarball"
+    # its content, not its path or time: the same tarball in another checkout's ../shared is the same source
+    source_id="tarball sha256 $(sha256sum "$tarball" | cut -d' ' -f1)"
 elif [ -x "$home/bin/px4" ]; then
     echo "px4: kept the build in $home ($(sed -n 2p "$home/.built" 2>/dev/null)); its source is not here to check"
     exit 0

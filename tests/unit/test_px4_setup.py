@@ -3,6 +3,7 @@
 in tests/px4/."""
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import replace
 import stat
@@ -40,8 +41,11 @@ def test_a_build_stamped_for_the_same_tarball_is_not_built_again(tmp_path):
     (cache / "bin").mkdir(parents=True)
     (cache / "bin" / "px4").write_text("#!/bin/sh\n")
     (cache / "bin" / "px4").chmod(stat.S_IRWXU)
-    st = tarball.stat()
-    (cache / ".built").write_text(f"tarball {st.st_size} {int(st.st_mtime)} {tarball.resolve()}\nv1.16.0, test\n")
+    digest = hashlib.sha256(tarball.read_bytes()).hexdigest()
+    (cache / ".built").write_text(f"tarball sha256 {digest}\nv1.16.0, test\n")
+    done = run_build(tmp_path)
+    assert done.returncode == 0 and done.stdout.strip() == f"px4: up to date in {cache} (v1.16.0, test)"
+    os.utime(tarball, (0, 0))  # the same content copied elsewhere, another time: the same source
     done = run_build(tmp_path)
     assert done.returncode == 0 and done.stdout.strip() == f"px4: up to date in {cache} (v1.16.0, test)"
     tarball.unlink()  # the source gone: the build is kept and said so
