@@ -309,13 +309,9 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     tdr_traj = replace(config.lemniscate, cycles=config.tdr_cycles)
     (tdr_log,) = pool.map(flights.tasks("lemniscate_near_ground", "neural_eso", base, tdr_traj,
                                         [config.seed * 1000 + 900]))
-    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, fs, lag, skip_s=tdr_traj.cycle_start_s)
-    tdr_res = train(z_r, y_r, bound=bound, units=recipe.bound_units, config=config,
-                    name=f"{recipe.name}-tdr" if paper else "tdr",
-                    fset_key=fs, lag=lag, recipe_name=recipe.name, init=base["base"], scalers=recipe.tdr_scalers,
-                    source=f"{recipe.tdr_label}:lemniscate_near_ground")
+    tdr_res = tdr_network(tdr_log, recipe, config, base, lag, tdr_traj)
     details["networks"]["tdr"] = _network_details(tdr_res, config)
-    details["tdr_samples"] = int(len(y_r))
+    details["tdr_samples"] = int(tdr_res.n_train + tdr_res.n_val)
     details["labels"] = {"landing (teacher)": {k: label_quality(teacher_logs[0], k, lag) for k in ("eso", "applied")},
                          "lemniscate (TDR flight)": {k: label_quality(tdr_log, k, lag) for k in ("tdr", "applied")}}
     nets3 = dict(base, tdr=tdr_res.network)
@@ -329,6 +325,16 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     networks = {_file_stem(n.metadata["id"]): n for n in nets.values()}
     networks.update(acceleration=acc_res.network, tdr=tdr_res.network)
     return {"results": results, "details": details, "logs": logs, "networks": networks}
+
+
+def tdr_network(tdr_log: FlightLog, recipe: Recipe, config: PaperConfig, base: dict, lag: ThrustLag, tdr_traj):
+    """Total Disturbance Retraining: the recipe's TDR labels of a neural_eso lemniscate flight ``tdr_log``
+    (``tdr_traj``, its ramp left out), fine-tuned from ``base["base"]``; the training result."""
+    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, recipe.feature_set, lag, skip_s=tdr_traj.cycle_start_s)
+    return train(z_r, y_r, bound=config.base_bound(recipe), units=recipe.bound_units, config=config,
+                 name=f"{recipe.name}-tdr" if recipe.bound_units == "normalised" else "tdr",
+                 fset_key=recipe.feature_set, lag=lag, recipe_name=recipe.name, init=base["base"],
+                 scalers=recipe.tdr_scalers, source=f"{recipe.tdr_label}:lemniscate_near_ground")
 
 
 def _landing_experiment(flights: _Flights, scenario, methods, networks, shared, details):
