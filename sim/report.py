@@ -151,3 +151,26 @@ def format_comparisons(results: dict) -> str:
     for claim, holds, figures in comparisons(results):
         lines.append(f"  [{'holds' if holds else 'FAILS'}] {claim}: {figures}")
     return "\n".join(lines)
+
+
+def format_worlds(builtin: dict, variants: dict) -> str:
+    """The experiments flown in both worlds side by side with the paper's figures (cm, mean ± std):
+    ``builtin`` the built-in world's ``experiments``, ``variants`` gain set → the PX4 world's
+    (``neso experiment paper --world px4``), with the PX4 allocator's saturation (% of airborne sensor periods)."""
+    names = list(variants)
+    head = ("method", "paper", "built-in world", *(f"PX4, gains {g}" for g in names), *(f"PX4 sat. % ({g})" for g in names))
+    out = []
+    for scenario in next(iter(variants.values()))["experiments"]:
+        rows = [head]
+        for method in variants[names[0]]["experiments"][scenario]["methods"]:
+            paper = PAPER_FIGURES_CM.get(scenario, {}).get(method)
+            ours = builtin.get(scenario, {}).get("methods", {}).get(method)
+            rows.append((method, "–" if paper is None else f"{paper:.2f}", _cell(ours) if ours else "–",
+                         *(_cell(variants[g]["experiments"][scenario]["methods"][method]) for g in names),
+                         *(_sat(variants[g]["saturation_percent"][scenario][method]) for g in names)))
+        out.append(_table(f"{scenario} ({variants[names[0]]['experiments'][scenario]['metric']})", rows))
+    return "\n\n".join(out)
+
+
+def _sat(result: dict) -> str:
+    return "–" if result["mean"] is None else f"{result['mean']:.1f}"
