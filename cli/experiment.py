@@ -149,8 +149,9 @@ def _run_px4(config, args) -> int:
     variants = run_px4_paper(builtin, config, px4)
     seconds = time.perf_counter() - started
     first = next(iter(variants.values()))
+    builtin_disturbance = _builtin_disturbance(builtin, config, first)
     print()
-    print(format_worlds(builtin.results, variants))
+    print(format_worlds(builtin.results, variants, builtin_disturbance))
     print(f"\nbuilt-in world {builtin.seconds:.0f} s ({args.trials} trials); PX4 world {seconds - builtin.seconds:.0f} s "
           f"({px4.trials} trial(s), {sum(len(v['flights']) for v in variants.values())} flights); total {seconds:.0f} s")
     out = {"world": "px4", "px4_version": built_version() or PX4_VERSION, "experiments": first["experiments"],
@@ -159,8 +160,7 @@ def _run_px4(config, args) -> int:
            "disturbance_z_std_mps2": first["disturbance_z_std_mps2"],
            "variants": {g: {k: v[k] for k in ("kp", "kd", "experiments", "saturation_percent", "disturbance_z_std_mps2")}
                         for g, v in variants.items()},
-           "builtin": dict(results_json(builtin, args.trials), disturbance_z_std_mps2=_builtin_disturbance(builtin, config,
-                                                                                                         first))}
+           "builtin": dict(results_json(builtin, args.trials), disturbance_z_std_mps2=builtin_disturbance)}
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
         print(f"results: {args.json}")
