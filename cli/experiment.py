@@ -25,8 +25,8 @@ def add_parser(subparsers) -> None:
                    help="builtin: the simulator's own inner loop, in-process (default); px4: the networks the "
                         "built-in pipeline trains (--trials there) flown by real PX4 v1.16.0 SITL in the loop, at "
                         "wall-clock real time, one PX4 boot per flight (built by make setup). Default PX4 run: 1 trial, "
-                        "15 flights (4 + 4 landings, 6 lemniscates, 1 TDR data flight), ~10 min on 2 cores; "
-                        "the JSON holds both worlds")
+                        "15 flights per gain set (4 + 4 landings of 20 s, 6 lemniscates of 41 s, 1 TDR data flight): "
+                        "7.5 min, ~9.5 min with the built-in pipeline on 2 cores; the JSON holds both worlds")
     p.add_argument("--px4-trials", type=int, default=1, help="--world px4: trials (seeds) per method in PX4 (default 1)")
     p.add_argument("--px4-gains", default="paper",
                    help="--world px4: comma-separated gain sets flown side by side: paper (kp_xy 6, kd_xy 4.5: the "
