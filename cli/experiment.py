@@ -133,7 +133,7 @@ def _px4_config(args):
 def _run_px4(config, args) -> int:
     import time
 
-    from cli.paper_px4 import run_px4_paper
+    from cli.paper_px4 import Px4FlightError, run_px4_paper
     from sim.experiments import results_json, run_paper
     from sim.px4_sitl import PX4_VERSION, built_version, missing_px4
     from sim.report import format_worlds
@@ -146,7 +146,11 @@ def _run_px4(config, args) -> int:
     started = time.perf_counter()
     print(f"built-in world: the pipeline ({args.trials} trials), whose networks the PX4 world flies")
     builtin = run_paper(config)
-    variants = run_px4_paper(builtin, config, px4)
+    try:
+        variants = run_px4_paper(builtin, config, px4)
+    except Px4FlightError as exc:  # no free PX4 instance, or the TDR data flight could not fly: nothing to report
+        print(f"neso experiment: {exc}")
+        return 1
     seconds = time.perf_counter() - started
     first = next(iter(variants.values()))
     builtin_disturbance = _builtin_disturbance(builtin, config, first)

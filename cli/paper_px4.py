@@ -86,17 +86,19 @@ class Px4Vehicle:
     counters, ``step`` sends the setpoint to PX4, waits for the period's wall-clock end, steps the world (PX4 in
     lockstep) and forwards the motion capture. ``truth`` and the measurement carry the experiment's time."""
 
-    def __init__(self, sim_config, *, seed: int, log=print) -> None:
+    def __init__(self, sim_config, *, seed: int) -> None:
         from services.px4_gateway import GatewayConfig, Px4Link
         from sim.px4_hil import AutopilotInTheLoop, HilSensors
         from sim.px4_link import Px4SimLink
         from sim.px4_sitl import OFFBOARD_UDP_PORT, SIM_TCP_PORT, sitl_command
         from sim.quadrotor import QuadrotorSim
 
-        self.log = log
         self.instance = free_px4_instance()
+        try:
+            self.link = Px4SimLink(SIM_TCP_PORT + self.instance)
+        except OSError as exc:  # taken between the probe and here (another flight on this machine)
+            raise Px4FlightError(f"PX4 instance {self.instance}'s simulator port: {exc}") from None
         self.workdir = tempfile.mkdtemp(prefix=f"neso-px4-paper-{self.instance}-")
-        self.link = Px4SimLink(SIM_TCP_PORT + self.instance)
         self.world = AutopilotInTheLoop(QuadrotorSim(sim_config, seed=seed), self.link.exchange, HilSensors(seed=seed))
         argv, env = sitl_command(self.instance)
         self._px4_out = open(os.path.join(self.workdir, "px4.log"), "wb")
@@ -287,7 +289,7 @@ def fly_px4(scenario: str, method: str, networks: dict, trajectory, seed: int, p
     from sim.scenarios import make_scenario
 
     started = time.monotonic()
-    vehicle = Px4Vehicle(make_scenario(scenario, **dict(paper.sim_overrides)), seed=seed, log=log)
+    vehicle = Px4Vehicle(make_scenario(scenario, **dict(paper.sim_overrides)), seed=seed)
     info: dict = {"scenario": scenario, "method": method, "seed": seed}
     flight = None
     try:
