@@ -21,6 +21,21 @@ def add_parser(subparsers) -> None:
     p.add_argument("--recipes", default=None,
                    help="comma-separated recipes flown side by side, the first reported first "
                         "(default: certified,paper; see neso/learning.py)")
+    p.add_argument("--world", choices=("builtin", "px4"), default="builtin",
+                   help="builtin: the simulator's own inner loop, in-process (default); px4: the networks the "
+                        "built-in pipeline trains (--trials there) flown by real PX4 v1.16.0 SITL in the loop, at "
+                        "wall-clock real time, one PX4 boot per flight (built by make setup). Default PX4 run: 1 trial, "
+                        "15 flights per gain set (4 + 4 landings of 20 s, 6 lemniscates of 41 s, 1 TDR data flight): "
+                        "7.5 min, ~9.5 min with the built-in pipeline on 2 cores; the JSON holds both worlds")
+    p.add_argument("--px4-trials", type=int, default=1, help="--world px4: trials (seeds) per method in PX4 (default 1)")
+    p.add_argument("--px4-gains", default="paper",
+                   help="--world px4: comma-separated gain sets flown side by side: paper (kp_xy 6, kd_xy 4.5: the "
+                        "faithful variant, limit-cycles ±0.2 m in xy on PX4) and px4 (kp_xy 2, kd_xy 2, for PX4's "
+                        "160–200 ms attitude response); z gains are the paper's in both (default paper)")
+    p.add_argument("--px4-experiments", default=None,
+                   help="--world px4: comma-separated experiments (default: nominal_landing,ood_slope,"
+                        "lemniscate_near_ground)")
+    p.add_argument("--px4-methods", default=None, help="--world px4: only these methods (default: every method)")
     p.add_argument("--rotor-aero", action="store_true",
                    help="fly every flight with the literature's speed- and thrust-dependent rotor aerodynamics "
                         "(sim.rotor_aero; off in the default world)")
@@ -51,6 +66,8 @@ def run(args) -> int:
         config = replace(config, epochs=args.epochs)
     if args.name == "aero":
         return _run_aero(config, args)
+    if args.world == "px4":
+        return _run_px4(config, args)
     run_ = run_paper(config)
     for name, rec in run_.by_recipe.items():
         print()
@@ -91,3 +108,76 @@ def _run_aero(config, args) -> int:
         args.json.write_text(json.dumps(result, indent=2))
         print(f"results: {args.json}")
     return 0
+
+
+def _px4_config(args):
+    """The PX4 world's choices from the flags, or a one-line refusal."""
+    from cli.paper_px4 import GAIN_SETS, PX4_EXPERIMENTS, Px4PaperConfig
+    from sim.experiments import LEMNISCATE_METHODS
+
+    split = lambda text: tuple(n.strip() for n in text.split(",") if n.strip())  # noqa: E731
+    gains = split(args.px4_gains)
+    experiments = split(args.px4_experiments) if args.px4_experiments else PX4_EXPERIMENTS
+    methods = split(args.px4_methods) if args.px4_methods else None
+    if not gains or any(g not in GAIN_SETS for g in gains):
+        return f"unknown gain set(s) in {args.px4_gains!r}; known: {sorted(GAIN_SETS)}"
+    if not experiments or any(e not in PX4_EXPERIMENTS for e in experiments):
+        return f"unknown experiment(s) in {args.px4_experiments!r}; known: {list(PX4_EXPERIMENTS)}"
+    if methods is not None and (not methods or any(m not in LEMNISCATE_METHODS for m in methods)):
+        return f"unknown method(s) in {args.px4_methods!r}; known: {list(LEMNISCATE_METHODS)}"
+    if args.px4_trials < 1:
+        return "--px4-trials must be 1 or more"
+    return Px4PaperConfig(trials=args.px4_trials, experiments=experiments, methods=methods, gains=gains)
+
+
+def _run_px4(config, args) -> int:
+    import time
+
+    from cli.paper_px4 import Px4FlightError, run_px4_paper
+    from sim.experiments import results_json, run_paper
+    from sim.px4_sitl import PX4_VERSION, built_version, missing_px4
+    from sim.report import format_worlds
+
+    problem = missing_px4()
+    px4 = _px4_config(args)
+    if problem or isinstance(px4, str):
+        print(f"neso experiment: {problem or px4}")
+        return 2
+    started = time.perf_counter()
+    print(f"built-in world: the pipeline ({args.trials} trials), whose networks the PX4 world flies")
+    builtin = run_paper(config)
+    try:
+        variants = run_px4_paper(builtin, config, px4)
+    except Px4FlightError as exc:  # no free PX4 instance, or the TDR data flight could not fly: nothing to report
+        print(f"neso experiment: {exc}")
+        return 1
+    seconds = time.perf_counter() - started
+    first = next(iter(variants.values()))
+    builtin_disturbance = _builtin_disturbance(builtin, config, first)
+    print()
+    print(format_worlds(builtin.results, variants, builtin_disturbance))
+    print(f"\nbuilt-in world {builtin.seconds:.0f} s ({args.trials} trials); PX4 world {seconds - builtin.seconds:.0f} s "
+          f"({px4.trials} trial(s), {sum(len(v['flights']) for v in variants.values())} flights); total {seconds:.0f} s")
+    out = {"world": "px4", "px4_version": built_version() or PX4_VERSION, "experiments": first["experiments"],
+           "saturation_percent": first["saturation_percent"], "trials": px4.trials, "seconds": seconds,
+           "recipe": next(iter(builtin.by_recipe)), "gains": next(iter(variants)),
+           "disturbance_z_std_mps2": first["disturbance_z_std_mps2"],
+           "variants": {g: {k: v[k] for k in ("kp", "kd", "experiments", "saturation_percent", "disturbance_z_std_mps2")}
+                        for g, v in variants.items()},
+           "builtin": dict(results_json(builtin, args.trials), disturbance_z_std_mps2=builtin_disturbance)}
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2))
+        print(f"results: {args.json}")
+    if args.details:
+        args.details.write_text(json.dumps({"builtin": builtin.details,
+                                            "px4_flights": {g: v["flights"] for g, v in variants.items()}}, indent=2))
+    return 0
+
+
+def _builtin_disturbance(builtin, config, px4_variant: dict) -> dict:
+    """The built-in world's true z disturbance spread for the experiments and methods the PX4 world flew."""
+    from neso.metrics import summarise
+    from sim.experiments import disturbance_z_std_mps2
+
+    return {scenario: {m: summarise([disturbance_z_std_mps2(log, config, scenario) for log in builtin.logs[scenario][m]])
+                       for m in methods} for scenario, methods in px4_variant["disturbance_z_std_mps2"].items()}

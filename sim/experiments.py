@@ -199,6 +199,17 @@ def lemniscate_rmse_cm(log: FlightLog, config: PaperConfig) -> float | None:
     return rmse_m(log.t_s, log.z_error_m, start_s=config.lemniscate.cycle_start_s) * 100
 
 
+def disturbance_z_std_mps2(log: FlightLog, config: PaperConfig, scenario: str) -> float | None:
+    """The spread (std, m/s²) of the true z disturbance the controller's nominal model does not explain, in the
+    window each experiment scores (the lemniscate's cycles; a landing's steady state); None if it diverged."""
+    if log.diverged:
+        return None
+    start = (config.lemniscate.cycle_start_s if scenario == "lemniscate_near_ground"
+             else config.landing.descent_end_s + config.settle_after_descent_s)
+    keep = np.isfinite(log.t_s) & (log.t_s >= start)
+    return float(np.std(log.f_true[keep, 2]))
+
+
 # -- the pipeline -----------------------------------------------------------------------
 @dataclass
 class PaperRun:
@@ -207,7 +218,8 @@ class PaperRun:
     logs: dict  # experiment → method → [FlightLog] (for plots), first recipe
     seconds: float
     networks: dict = field(default_factory=dict)  # file stem → LipschitzMLP, first recipe
-    by_recipe: dict = field(default_factory=dict)  # recipe → {"results", "details", "logs", "networks"}
+    by_recipe: dict = field(default_factory=dict)  # recipe → {"results", "details", "logs", "networks", "flown"}
+    lag: ThrustLag | None = None  # the thrust response identified on the teacher flights
 
 
 class _Flights:
@@ -256,7 +268,7 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
     first = by_recipe[config.recipes[0]]
     details = dict(first["details"], timing_s=flights.timing)
     return PaperRun(results=first["results"], details=details, logs=first["logs"],
-                    seconds=time.perf_counter() - started, networks=first["networks"], by_recipe=by_recipe)
+                    seconds=time.perf_counter() - started, networks=first["networks"], by_recipe=by_recipe, lag=lag)
 
 
 def _shared_flights(flights: _Flights) -> dict:
@@ -309,13 +321,9 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     tdr_traj = replace(config.lemniscate, cycles=config.tdr_cycles)
     (tdr_log,) = pool.map(flights.tasks("lemniscate_near_ground", "neural_eso", base, tdr_traj,
                                         [config.seed * 1000 + 900]))
-    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, fs, lag, skip_s=tdr_traj.cycle_start_s)
-    tdr_res = train(z_r, y_r, bound=bound, units=recipe.bound_units, config=config,
-                    name=f"{recipe.name}-tdr" if paper else "tdr",
-                    fset_key=fs, lag=lag, recipe_name=recipe.name, init=base["base"], scalers=recipe.tdr_scalers,
-                    source=f"{recipe.tdr_label}:lemniscate_near_ground")
+    tdr_res = tdr_network(tdr_log, recipe, config, base, lag, tdr_traj)
     details["networks"]["tdr"] = _network_details(tdr_res, config)
-    details["tdr_samples"] = int(len(y_r))
+    details["tdr_samples"] = int(tdr_res.n_train + tdr_res.n_val)
     details["labels"] = {"landing (teacher)": {k: label_quality(teacher_logs[0], k, lag) for k in ("eso", "applied")},
                          "lemniscate (TDR flight)": {k: label_quality(tdr_log, k, lag) for k in ("tdr", "applied")}}
     nets3 = dict(base, tdr=tdr_res.network)
@@ -328,7 +336,17 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     flights.tick(f"{recipe.name}: lemniscate_near_ground")
     networks = {_file_stem(n.metadata["id"]): n for n in nets.values()}
     networks.update(acceleration=acc_res.network, tdr=tdr_res.network)
-    return {"results": results, "details": details, "logs": logs, "networks": networks}
+    return {"results": results, "details": details, "logs": logs, "networks": networks, "flown": nets3}
+
+
+def tdr_network(tdr_log: FlightLog, recipe: Recipe, config: PaperConfig, base: dict, lag: ThrustLag, tdr_traj):
+    """Total Disturbance Retraining: the recipe's TDR labels of a neural_eso lemniscate flight ``tdr_log``
+    (``tdr_traj``, its ramp left out), fine-tuned from ``base["base"]``; the training result."""
+    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, recipe.feature_set, lag, skip_s=tdr_traj.cycle_start_s)
+    return train(z_r, y_r, bound=config.base_bound(recipe), units=recipe.bound_units, config=config,
+                 name=f"{recipe.name}-tdr" if recipe.bound_units == "normalised" else "tdr",
+                 fset_key=recipe.feature_set, lag=lag, recipe_name=recipe.name, init=base["base"],
+                 scalers=recipe.tdr_scalers, source=f"{recipe.tdr_label}:lemniscate_near_ground")
 
 
 def _landing_experiment(flights: _Flights, scenario, methods, networks, shared, details):

@@ -21,8 +21,8 @@ def _cell(result: dict) -> str:
     return text
 
 
-def _table(title: str, rows: list[tuple[str, str, str]]) -> str:
-    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+def _table(title: str, rows: list[tuple[str, ...]]) -> str:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = [title]
     for i, row in enumerate(rows):
         lines.append("  " + "  ".join(cell.ljust(w) for cell, w in zip(row, widths)))
@@ -151,3 +151,30 @@ def format_comparisons(results: dict) -> str:
     for claim, holds, figures in comparisons(results):
         lines.append(f"  [{'holds' if holds else 'FAILS'}] {claim}: {figures}")
     return "\n".join(lines)
+
+
+def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict) -> str:
+    """The experiments flown in both worlds side by side with the paper's figures (cm, mean ± std):
+    ``builtin`` the built-in world's ``experiments``, ``variants`` gain set → the PX4 world's
+    (``neso experiment paper --world px4``), with the PX4 allocator's saturation (% of airborne sensor periods)
+    and the true z disturbance's spread (std, m/s²) in each world (``builtin_disturbance`` the built-in's)."""
+    names = list(variants)
+    head = ("method", "paper", "built-in world", *(f"PX4, gains {g}" for g in names),
+            *(f"PX4 sat. % ({g})" for g in names), "f_z std built-in", *(f"f_z std PX4 ({g})" for g in names))
+    out = []
+    for scenario in next(iter(variants.values()))["experiments"]:
+        rows = [head]
+        for method in variants[names[0]]["experiments"][scenario]["methods"]:
+            paper = PAPER_FIGURES_CM.get(scenario, {}).get(method)
+            ours = builtin.get(scenario, {}).get("methods", {}).get(method)
+            rows.append((method, "–" if paper is None else f"{paper:.2f}", _cell(ours) if ours else "–",
+                         *(_cell(variants[g]["experiments"][scenario]["methods"][method]) for g in names),
+                         *(_sat(variants[g]["saturation_percent"][scenario][method]) for g in names),
+                         _sat(builtin_disturbance[scenario][method], "{:.2f}"),
+                         *(_sat(variants[g]["disturbance_z_std_mps2"][scenario][method], "{:.2f}") for g in names)))
+        out.append(_table(f"{scenario} ({variants[names[0]]['experiments'][scenario]['metric']})", rows))
+    return "\n\n".join(out)
+
+
+def _sat(result: dict, form: str = "{:.1f}") -> str:
+    return "–" if result["mean"] is None else form.format(result["mean"])

@@ -6,28 +6,12 @@ import time
 
 import pytest
 
+from cli.paper_px4 import free_px4_instance
 from runtime.client import command
 from sim.px4_sitl import missing_px4, px4_home
 from tests.busutil import NesoUp, free_port, peer
 
 TOPICS = ("state", "truth", "setpoint", "reference", "telemetry", "recording")
-
-
-def free_px4_instance() -> int:
-    """A PX4 SITL instance (0–9) whose ports are free here (another flight may be running on a shared machine)."""
-    import socket
-
-    for instance in range(10):
-        try:
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
-                tcp.bind(("127.0.0.1", 4560 + instance))
-            for port in (14540, 14580, 18570):
-                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-                    udp.bind(("127.0.0.1", port + instance))
-            return instance
-        except OSError:
-            continue
-    raise AssertionError("no free PX4 SITL instance (ports 4560/14540/14580/18570 + 0–9 all taken)")
 
 
 class Px4Flight(NesoUp):
