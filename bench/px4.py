@@ -25,7 +25,7 @@ COLUMNS = ("PX4 SITL in the loop, 50 Hz, hovering", "span s", "world / wall", "s
 def fly(span_s: float, *, dashboard: bool = True) -> dict:
     """One flight; the figures of the measured ``span_s`` (after the take-off and 3 s of hover)."""
     from sim.px4_sitl import px4_home
-    from tests.px4.conftest import free_px4_instance
+    from cli.paper_px4 import free_px4_instance
 
     hub = f"tcp/127.0.0.1:{free_port()}"
     keys = Keys("uav1")
