@@ -143,15 +143,29 @@ def test_neso_up_refuses_natnet_with_lockstep_or_a_mavlink_vehicle(capsys):
         assert "--mocap natnet runs in real time with --vehicle direct only" in capsys.readouterr().out
 
 
-def test_neso_up_gives_each_vehicles_source_its_own_simulated_motive():
+def test_neso_up_streams_several_vehicles_from_one_simulated_motive_and_one_from_its_own():
     from cli.main import build_parser
     from cli.up import build_specs
 
-    specs = {s.name: s.argv for s in build_specs(build_parser().parse_args(
-        ["up", "--mocap", "natnet", "--natnet-port", "3000", "--name", "a", "--name", "b"]))}
-    for name, port in (("a/source", "3000"), ("b/source", "3002")):
-        argv = list(specs[name])
-        assert argv[argv.index("--mocap-stream") + 1] == "natnet" and argv[argv.index("--natnet-port") + 1] == port
+    def specs(*names: str) -> dict:
+        args = ["up", "--mocap", "natnet", "--natnet-port", "3000"] + [a for n in names for a in ("--name", n)]
+        return {s.name: list(s.argv) for s in build_specs(build_parser().parse_args(args))}
+
+    def opt(argv: list, flag: str) -> str:
+        return argv[argv.index(flag) + 1]
+
+    two = specs("a", "b")
+    motive = two["motive"]
+    assert list(two).index("motive") < list(two).index("a/source"), "the mocap system starts before its readers"
+    assert (opt(motive, "--port"), opt(motive, "--feed-port"), opt(motive, "--bodies")) == ("3000", "3002", "a,b")
+    for i, v in enumerate(("a", "b")):
+        argv = two[f"{v}/source"]
+        assert opt(argv, "--mocap-stream") == "natnet" and opt(argv, "--natnet-port") == "3000"
+        assert (opt(argv, "--natnet-feed"), opt(argv, "--natnet-body-id"), opt(argv, "--rigid-body")) == \
+            ("3002", str(i + 1), v)
+        assert float(opt(argv, "--natnet-rate")) == float(opt(motive, "--rate")) == 100.0  # the scenario's mocap rate
+    one = specs()
+    assert "motive" not in one and "--natnet-feed" not in one["source"] and opt(one["source"], "--natnet-port") == "3000"
 
 
 def test_the_source_refuses_a_natnet_stream_it_cannot_run_in_one_line():
