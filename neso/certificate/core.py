@@ -265,3 +265,18 @@ def negative_margin(m: np.ndarray, err: np.ndarray | None = None) -> float:
     if err is not None:
         slack += float(np.linalg.norm(err * np.outer(s, s)))
     return -lam - slack
+
+
+def bisect_verified(ok, lo: float, hi: float, best, rel_tol: float):
+    """``(largest value, its certificate)`` of a bisection on ``ok(value)`` (a certificate that verified, or None)
+    between ``lo``, where ``best`` verified, and ``hi``, to relative resolution ``rel_tol``. ``ok`` must be
+    monotone (a certificate at ``L`` is one at every smaller ``L``): the result is the last value that verified,
+    never a bracket end."""
+    while hi - lo > rel_tol * hi:
+        mid = 0.5 * (lo + hi)
+        cert = ok(mid)
+        if cert is None:
+            hi = mid
+        else:
+            best, lo = cert, mid
+    return lo, best

@@ -15,7 +15,8 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from neso.certificate.core import CertificateInputs, CertificateResult, composite_matrices, negative_margin
+from neso.certificate.core import (CertificateInputs, CertificateResult, bisect_verified, composite_matrices,
+                                   negative_margin)
 
 # --------------------------------------------------------------------------------------------- LMI
 
@@ -281,13 +282,7 @@ def _lmi_frontier(kp: float, kd: float, omega_o: float, lambda_c_rule: str, stru
             best, lo, hi = c, hi, 2.0 * hi
             if hi > 1e9:
                 break
-        while hi - lo > _LMI_REL_TOL * hi:
-            mid = 0.5 * (lo + hi)
-            c = ok(mid)
-            if c is None:
-                hi = mid
-            else:
-                best, lo = c, mid
+        lo, best = bisect_verified(ok, lo, hi, best, _LMI_REL_TOL)
     return _LmiFrontier(lo, best, solves, time.perf_counter() - t0)
 
 

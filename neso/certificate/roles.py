@@ -40,8 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from neso.certificate.core import (L1_MPS3, LU_PER_S, REF_ACC_MAX_MPS2, REF_VEL_MAX_MPS, composite_matrices,
-                                   negative_margin)
+from neso.certificate.core import (L1_MPS3, LU_PER_S, REF_ACC_MAX_MPS2, REF_VEL_MAX_MPS, bisect_verified,
+                                   composite_matrices, negative_margin)
 
 _EPS = np.finfo(float).eps
 _MARGIN = 1e-9  # demanded Jacobi-scaled margin of the matrix inequalities, after rounding slack
@@ -315,14 +315,7 @@ def _frontier(kp: float, kd: float, omega_o: float) -> _Frontier:
         best = ok(0.0)
         if best is None:
             return _Frontier(0.0, exact, None, math.nan)
-        lo, hi = 0.0, exact
-        while hi - lo > 1e-6 * hi:
-            mid = 0.5 * (lo + hi)
-            sol = ok(mid)
-            if sol is None:
-                hi = mid
-            else:
-                best, lo = sol, mid
+        lo, best = bisect_verified(ok, 0.0, exact, best, 1e-6)
     return _Frontier(lo, exact, best[0], best[1])
 
 
