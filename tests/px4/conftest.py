@@ -9,7 +9,7 @@ import pytest
 from cli.paper_px4 import free_px4_instance
 from runtime.client import command
 from sim.px4_sitl import missing_px4, px4_home
-from tests.busutil import NesoUp, free_port, peer
+from tests.busutil import NesoUp, free_port, peer, wait_for
 
 TOPICS = ("state", "truth", "setpoint", "reference", "telemetry", "recording")
 
@@ -39,6 +39,19 @@ class Px4Flight(NesoUp):
 
     def log(self, text: str) -> bool:
         return any(text in line for line in self.output)
+
+    def airborne(self) -> None:
+        """The operator's flow to a hover at 1 m (PX4's "Ready for takeoff", offboard, arm, the controller's
+        take-off), then 2 s of hover; nothing if it is already up."""
+        truth = self.probe.get("truth")
+        if truth and truth[-1].pos_enu_m[2] > 0.9:
+            return
+        wait_for("PX4 says it is ready for takeoff", lambda: self.log("Ready for takeoff"), 60)
+        wait_for("offboard accepted", lambda: self.cmd("px4_gateway", "offboard_start").ok, 30, 1.0)
+        wait_for("PX4 arms", lambda: self.cmd("px4_gateway", "arm").ok, 60, 1.0)
+        assert self.cmd("controller", "arm").ok and self.cmd("controller", "takeoff").ok
+        wait_for("airborne", lambda: self.probe.get("truth")[-1].pos_enu_m[2] > 0.9, 30)
+        time.sleep(2.0)
 
 
 @pytest.fixture(scope="module")

@@ -12,22 +12,10 @@ import numpy as np
 from tests.busutil import role_pid, wait_for
 
 
-def airborne(flight) -> None:
-    """The operator's flow to a hover at 1 m, once per flight."""
-    if flight.probe.get("truth") and flight.probe.get("truth")[-1].pos_enu_m[2] > 0.9:
-        return
-    wait_for("PX4 says it is ready for takeoff", lambda: flight.log("Ready for takeoff"), 60)
-    wait_for("offboard accepted", lambda: flight.cmd("px4_gateway", "offboard_start").ok, 30, 1.0)
-    wait_for("PX4 arms", lambda: flight.cmd("px4_gateway", "arm").ok, 60, 1.0)
-    assert flight.cmd("controller", "arm").ok and flight.cmd("controller", "takeoff").ok
-    wait_for("airborne", lambda: flight.probe.get("truth")[-1].pos_enu_m[2] > 0.9, 30)
-    time.sleep(2.0)
-
-
 def test_the_estimator_killed_mid_hover_the_controller_flies_its_local_eso_through_px4(flight):
     """kill -9 of the estimator: within 3 periods the controller's setpoints come from its local ESO, PX4 stays in
     offboard and the vehicle at its height; the restarted estimator's estimates fly again."""
-    airborne(flight)
+    flight.airborne()
     start = flight.probe.get("setpoint")[-1].seq
     old = role_pid(flight.proc.pid, "estimator")
     os.kill(old, signal.SIGKILL)
@@ -49,7 +37,7 @@ def test_the_gateway_killed_mid_hover_px4s_own_failsafe_within_com_of_loss_t(fli
     """kill -9 of the gateway mid-hover: its setpoint stream stops; PX4's own offboard-loss action (COM_OF_LOSS_T
     1 s, then COM_OBL_RC_ACT: Land, sim/px4/neso_quad.params) within 1.5 s.
     What follows is printed: the modes the restarted gateway sees and where the vehicle ends."""
-    airborne(flight)
+    flight.airborne()
     before = len(flight.output)
     killed = time.monotonic()
     os.kill(role_pid(flight.proc.pid, "px4_gateway"), signal.SIGKILL)

@@ -9,15 +9,10 @@ import time
 import numpy as np
 
 from runtime.schema import HealthMsg
-from tests.busutil import wait_for
 
 
 def test_a_second_without_motion_capture_is_told_to_px4_and_the_flight_goes_on(flight):
-    wait_for("PX4 says it is ready for takeoff", lambda: flight.log("Ready for takeoff"), 60)
-    wait_for("offboard accepted", lambda: flight.cmd("px4_gateway", "offboard_start").ok, 30, 1.0)
-    wait_for("PX4 arms", lambda: flight.cmd("px4_gateway", "arm").ok, 60, 1.0)
-    assert flight.cmd("controller", "arm").ok and flight.cmd("controller", "takeoff").ok
-    wait_for("airborne", lambda: flight.probe.get("truth")[-1].pos_enu_m[2] > 0.9, 30)
+    flight.airborne()
     health: list[HealthMsg] = []
     flight.s.declare_subscriber(flight.probe.keys.health("px4_gateway"),
                                 lambda smp: health.append(HealthMsg.from_bytes(smp.payload.to_bytes())))
