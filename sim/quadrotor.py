@@ -790,6 +790,12 @@ class QuadrotorSim:
                 if az <= 0.0:  # resting: static friction holds it
                     vx = vy = 0.0
                     on_ground = True
+                    # standing on its legs (under the hubs, a from the centre along each axis) the floor's
+                    # reaction also holds roll and pitch while the rotors' moment cannot lift a leg:
+                    # |M| below what is left of the weight times a (statics of a body on its support square)
+                    hold = (m * g - thrust) * a
+                    if -hold < mx < hold and -hold < my < hold:
+                        wx = wy = 0.0
                 else:
                     on_ground = False
             else:

@@ -55,6 +55,21 @@ def test_more_thrust_on_the_left_rotors_rolls_the_vehicle_right_side_down():
     assert wx > 0.1 and abs(wy) < 1e-6 and abs(wz) < 1e-6  # FLU roll: the left side rises
 
 
+def test_a_vehicle_on_its_legs_does_not_roll_until_the_rotors_moment_can_lift_a_leg():
+    """The floor holds roll and pitch while |M| < (m g - T) a (a: hub offset along an axis); PX4 idling on the
+    ground commands such moments, and without this the world let a landed vehicle roll through the floor."""
+    def roll_after(u: float, steps: int) -> float:
+        sim = calm_world(z_m=0.0)  # on the floor, motors off
+        for _ in range(steps):  # left rotors (0 front left, 3 rear left) at u, right ones off
+            sim.step_rotors((u, 0.0, 0.0, u), 2)
+        assert not sim.crashed
+        return sim.truth.body_rates_rps[0]
+
+    # u 0.2: T 3.9 N, M 0.50 N·m below (9.81 - 3.9) · 0.127 = 0.75 N·m; u 0.7: M 1.75 above 0.37 N·m
+    assert roll_after(0.2, 200) == 0.0  # 0.8 s
+    assert roll_after(0.7, 10) > 0.5  # tips over its right legs within 40 ms
+
+
 def test_a_bad_rotor_command_is_refused_and_the_last_one_held():
     sim = calm_world()
     u = sim.config.params.hover_thrust_norm
