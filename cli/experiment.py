@@ -112,7 +112,8 @@ def _run_aero(config, args) -> int:
 
 def _px4_config(args):
     """The PX4 world's choices from the flags, or a one-line refusal."""
-    from cli.paper_px4 import GAIN_SETS, PX4_EXPERIMENTS, Px4PaperConfig
+    from cli.paper_px4 import PX4_EXPERIMENTS, Px4PaperConfig
+    from neso.control import GAIN_SETS
     from sim.experiments import LEMNISCATE_METHODS
 
     split = lambda text: tuple(n.strip() for n in text.split(",") if n.strip())  # noqa: E731

@@ -27,17 +27,12 @@ import threading
 import time
 from dataclasses import dataclass, replace
 
-from neso.control import ControlConfig, PositionController
+from neso.control import GAIN_SETS, ControlConfig, PositionController
 from neso.methods import build_estimator
 from neso.metrics import summarise
 from neso.types import AttitudeSetpoint
 
 PX4_EXPERIMENTS = ("nominal_landing", "ood_slope", "lemniscate_near_ground")
-# (kp, kd) per axis. "paper": the paper's gains (ControlConfig's defaults), the faithful variant. "px4": softer
-# xy gains for PX4's slower attitude response (160–200 ms setpoint → attitude against ~50 ms in the built-in
-# world): at the paper's xy gains the position loop limit-cycles ±0.2 m on PX4 (README, "Real PX4 in the loop");
-# at kp_xy 2, kd_xy 2 it hovers at 1.8 cm. z is the paper's in both (the experiments score z).
-GAIN_SETS = {"paper": ((6.0, 6.0, 10.0), (4.5, 4.5, 6.0)), "px4": ((2.0, 2.0, 10.0), (2.0, 2.0, 6.0))}
 
 
 @dataclass(frozen=True)
