@@ -27,6 +27,7 @@ def add_parser(subparsers) -> None:
     from flight.estimator import EstimatorConfig
     from flight.mission import COMMANDS
     from flight.source import SourceConfig
+    from neso.control import GAIN_SETS
     from neso.types import PATHWAYS
     from services.recorder import RecorderConfig
     from services.trainer import TrainerConfig
@@ -55,6 +56,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--px4-instance", type=int, default=0, choices=range(10), metavar="0-9",
                    help="--vehicle px4: PX4 SITL instance of the first vehicle (the next: +1, …); its ports are 4560, 14540, "
                         "14580, 18570 + instance")
+    p.add_argument("--gains", default=None, choices=tuple(GAIN_SETS),
+                   help="the controller's start-up gains (live parameters after): paper, or px4 (xy softer for PX4's "
+                        "slower attitude loop; the default with --vehicle px4, paper otherwise)")
     p.add_argument("--mocap", default="direct", choices=("direct", "natnet"),
                    help="how the simulated world's motion capture reaches the source: direct, or natnet (a simulated "
                         "Motive streams NatNet on loopback, read by the motioncapture optitrack client as in a lab)")
@@ -115,7 +119,7 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         if args.allow_uncertified:
             specific += ["--allow-uncertified"]
     elif role == "controller":
-        specific = ["--mission", args.mission, "--rate", str(args.rate)]
+        specific = ["--mission", args.mission, "--rate", str(args.rate), "--gains", controller_gains(args)]
     elif role == "recorder":
         specific = ["--recordings-dir", args.recordings_dir]
     elif role == "trainer":
@@ -249,6 +253,12 @@ def build_specs(args) -> list[ProcessSpec]:
     return specs
 
 
+def controller_gains(args) -> str:
+    """The controller's start-up gain set: ``--gains``, else px4 on real PX4 (its attitude loop answers in 160–200 ms;
+    the paper's xy gains limit-cycle there) and the paper's on the world's own inner loop."""
+    return args.gains or ("px4" if args.vehicle == "px4" else "paper")
+
+
 def shared_motive(args) -> bool:
     """``--mocap natnet`` with several vehicles: one simulated Motive (``sim/natnet_motive.py``) streams them all,
     as a lab's one Motive PC does; with one vehicle its world runs its own."""
@@ -324,6 +334,11 @@ def run(args) -> int:
         print(f"  processes:        one {', one '.join(SHARED_ROLES)} for all {len(vehicles)} vehicles, a source each "
               "(--no-process-per-role: one per vehicle)", flush=True)
     flag = " --secure" if args.secure else ""
+    if controller_gains(args) != "paper":
+        from neso.control import GAIN_SETS
+
+        print(f"  controller gains: {controller_gains(args)} (kp, kd {GAIN_SETS[controller_gains(args)]}; --gains paper: "
+              "the paper's)", flush=True)
     print(f"  live parameters:  neso params get estimator{flag} | neso params set estimator pathway=eso{flag}", flush=True)
     print(f"  missions:         neso cmd controller landing_test{flag}  (takeoff | hover | lemniscate | land | arm | hold | "
           "abort)", flush=True)

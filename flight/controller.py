@@ -31,7 +31,7 @@ from flight import forget_older
 from flight.mission import COMMANDS, Mission, MissionConfig
 from flight.ratecheck import RateCheck
 from neso.certificate import flight_budget, flight_certificate
-from neso.control import ControlConfig, PositionController
+from neso.control import GAIN_SETS, ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.types import OMEGA_O_RPS, AttitudeSetpoint, StateMeasurement, VehicleModel
@@ -65,6 +65,8 @@ class ControllerConfig:
     stale_timeout_s: float = 0.06  # stale_periods at the rate, as config_from_args derives it
     stale_samples: int = 3
     warmup_ticks: int = 25
+    gains: str = option("paper", choices=tuple(GAIN_SETS), help="start-up gains (live parameters after): paper "
+                        "(the paper's) or px4 (xy softer for PX4's slower attitude loop; neso.control.GAIN_SETS)")
     mass_kg: float = option(VehicleModel().mass_kg, unit="kg", help="the vehicle's mass: thrust in newtons is for it "
                             "(also a live parameter; recorded with every flight, so its labels are in m/s²)")
 
@@ -76,10 +78,13 @@ def gain_values(control: ControlConfig) -> dict[str, float]:
             "mass_kg": control.vehicle.mass_kg}
 
 
-def with_mass(config: ControllerConfig) -> ControllerConfig:
-    """``config`` with its control law's vehicle model at ``config.mass_kg``."""
+def resolved(config: ControllerConfig) -> ControllerConfig:
+    """``config`` as the controller flies it: its control law's gains are the set ``config.gains`` names (its
+    ``control``'s own kp, kd are not read) and its vehicle model is at ``config.mass_kg``."""
     control = config.control
-    return replace(config, control=replace(control, vehicle=replace(control.vehicle, mass_kg=config.mass_kg)))
+    kp, kd = GAIN_SETS[config.gains]
+    return replace(config, control=replace(control, kp=kp, kd=kd,
+                                           vehicle=replace(control.vehicle, mass_kg=config.mass_kg)))
 
 
 _GAINS = gain_values(ControlConfig())
@@ -108,7 +113,7 @@ class ControllerCore:
     each returns the (setpoint, reference) pairs to publish (zero or one) plus events."""
 
     def __init__(self, config: ControllerConfig, *, clock: Callable[[], float]) -> None:
-        config = with_mass(config)
+        config = resolved(config)
         self.config = config
         self.clock = clock
         self.position = PositionController(config.control)

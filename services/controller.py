@@ -11,7 +11,7 @@ import argparse
 import time
 from dataclasses import replace
 
-from flight.controller import CONTROLLER_PARAMS, ControllerConfig, ControllerCore, gain_values, with_mass
+from flight.controller import CONTROLLER_PARAMS, ControllerConfig, ControllerCore, gain_values, resolved
 from runtime.options import add_options, config_from_options
 from runtime.params import ParamSet
 from runtime.schema import EstimateMsg, StateMsg
@@ -35,9 +35,9 @@ def run(args, bus) -> int:
 
     config = config_from_args(args)
     core = ControllerCore(config, clock=time.monotonic)
-    params = ParamSet(CONTROLLER_PARAMS, gain_values(with_mass(config).control), check=core.check_gains,
+    params = ParamSet(CONTROLLER_PARAMS, gain_values(resolved(config).control), check=core.check_gains,
                       prepare=core.prepare_gains)
-    node = Node("controller", vehicle=args.vehicle, bus=bus, config=config, params=params)
+    node = Node("controller", vehicle=args.vehicle, bus=bus, config=resolved(config), params=params)
     put_setpoint, put_reference = node.publisher("setpoint"), node.publisher("reference")
 
     def publish(outputs, received_s: float) -> None:

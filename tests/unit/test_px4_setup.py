@@ -103,6 +103,18 @@ def test_up_with_px4_runs_px4_the_world_as_its_simulator_and_the_gateway_per_veh
     assert last_value(shifted["px4_gateway"], "--mavlink") == "udpin://127.0.0.1:14543"
 
 
+def test_the_controller_starts_on_the_px4_gains_with_px4_and_the_papers_otherwise():
+    from neso.control import GAIN_SETS
+
+    def gains(*flags):
+        specs = {s.name: s.argv for s in build_specs(build_parser().parse_args(["up", *flags]))}
+        return last_value(specs["controller"], "--gains")
+
+    assert gains("--vehicle", "px4") == "px4" and gains("--vehicle", "mavlink") == "paper" and gains() == "paper"
+    assert gains("--vehicle", "px4", "--gains", "paper") == "paper"  # the faithful variant, chosen
+    assert GAIN_SETS["px4"][0][:2] == (2.0, 2.0) and GAIN_SETS["px4"][0][2] == GAIN_SETS["paper"][0][2]  # z: the paper's
+
+
 def test_up_with_px4_refuses_lockstep_in_one_line(capsys):
     from cli.up import run
 

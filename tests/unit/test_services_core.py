@@ -163,10 +163,10 @@ def test_controller_gain_change_keeps_the_force_continuous():
 def test_the_controller_flies_the_vehicles_mass_and_reports_it_as_a_parameter():
     from dataclasses import replace
 
-    from flight.controller import CONTROLLER_PARAMS, gain_values, with_mass
+    from flight.controller import CONTROLLER_PARAMS, gain_values, resolved
 
     heavy = ControllerConfig(mass_kg=2.65)
-    assert with_mass(heavy).control.vehicle.mass_kg == 2.65 and gain_values(with_mass(heavy).control)["mass_kg"] == 2.65
+    assert resolved(heavy).control.vehicle.mass_kg == 2.65 and gain_values(resolved(heavy).control)["mass_kg"] == 2.65
     assert "mass_kg" in {p.name for p in CONTROLLER_PARAMS}
     thrust = {}
     for mass in (1.0, 2.65):
@@ -175,6 +175,8 @@ def test_the_controller_flies_the_vehicles_mass_and_reports_it_as_a_parameter():
         (sp, _), = core.on_estimate(estimate(0, fz=0.0), 0.0)
         thrust[mass] = sp.thrust_n
     assert thrust[2.65] == pytest.approx(2.65 * thrust[1.0], rel=1e-9)  # newtons for the vehicle flown
+    soft = ControllerCore(ControllerConfig(gains="px4", mass_kg=2.65), clock=fixed_clock)  # the set named, mass kept
+    assert gain_values(soft.config.control) == {"kp_xy": 2.0, "kd_xy": 2.0, "kp_z": 10.0, "kd_z": 6.0, "mass_kg": 2.65}
     core = ControllerCore(ControllerConfig(), clock=fixed_clock)
     core.apply_gains({**gain_values(core.config.control), "mass_kg": 1.4})
     assert core.config.mass_kg == 1.4 and core.config.control.vehicle.mass_kg == 1.4
