@@ -187,7 +187,7 @@ class Px4Vehicle:
                 self.proc.wait(5.0)
         self._bringup.join(5.0)
         with self._lock:
-            self.gateway.offboard = self.gateway.mocap = None
+            self.gateway.offboard = self.gateway.direct = None
         if self._mavsdk is not None:
             self._mavsdk.destroy()
         self.link.close()
@@ -221,7 +221,7 @@ class Px4Vehicle:
         meas = self.world.step(setpoint)
         with self._lock:
             self.gateway.core.on_state(meas, time.monotonic(), offboard=self.mode == "OFFBOARD")
-            if self.gateway.mocap is not None:
+            if self.gateway.direct is not None:
                 self.gateway._forward_pose(meas)
         return meas
 
@@ -231,7 +231,7 @@ class Px4Vehicle:
         settled on the motion capture)."""
         from mavsdk import ComponentType, Configuration, Mavsdk, log_subscribe
         from mavsdk.plugins.action import Action
-        from mavsdk.plugins.mocap import Mocap
+        from mavsdk.plugins.mavlink_direct import MavlinkDirect
         from mavsdk.plugins.offboard import Offboard
         from mavsdk.plugins.telemetry import Telemetry
 
@@ -249,7 +249,8 @@ class Px4Vehicle:
             tele.subscribe_status_text(lambda v, _: self.texts.append(f"{v.type.name}: {v.text.strip()}"))
             action, offboard = Action(system), Offboard(system)
             with self._lock:
-                self.gateway.mocap, self.gateway.offboard = Mocap(system), offboard
+                self.gateway.direct, self.gateway.offboard = MavlinkDirect(system), offboard
+                self.gateway.system_id = system.get_system_id()
             for what in ("offboard", "arm"):
                 while not self._stop.is_set():
                     try:

@@ -52,6 +52,23 @@ from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
 VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
                      "ALTCTL", "STABILIZED", "MANUAL", "ACRO", "RATTITUDE")
 COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
+# PX4 SITL's default home (PX4_HOME_LAT, PX4_HOME_LON, PX4_HOME_ALT in PX4-Autopilot's SITL start scripts): deg, deg, m
+PX4_SITL_HOME_LLA = (47.397742, 8.545594, 488.0)
+MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_FRD, MAV_ESTIMATOR_TYPE_VISION = 1, 12, 2  # MAVLink common.xml
+
+
+def parse_lla(text: str) -> tuple[float, ...]:
+    """``lat_deg,lon_deg,alt_m`` (or ``none``: the empty tuple); SystemExit with one line for anything else."""
+    if text.strip().lower() == "none":
+        return ()
+    try:
+        lat, lon, alt = (float(v) for v in text.split(","))
+    except ValueError:
+        raise SystemExit(f"--global-origin {text!r}: give lat_deg,lon_deg,alt_m (e.g. 47.397742,8.545594,488) "
+                         "or none") from None
+    if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and math.isfinite(alt)):
+        raise SystemExit(f"--global-origin {text!r}: latitude within ±90°, longitude within ±180°, a finite altitude")
+    return lat, lon, alt
 
 
 @dataclass(frozen=True)
@@ -77,11 +94,18 @@ class GatewayConfig:
     stale_states: int = option(15, unit="samples", help="unanswered states before hold")
     stale_max_s: float = option(1.0, flag="--stale-max", unit="s", help="without setpoints before hold, states or not")
     land_after_s: float = option(3.0, flag="--land-after", unit="s", help="in failsafe hold before land")
+    hold_confirm_s: float = 1.0  # the failsafe's hold commanded and the vehicle still in offboard this long: land
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
     pose_lost_after_s: float = option(0.1, flag="--pose-lost-after", unit="s",
                                       help="without a forwarded state before PX4 is told the motion capture failed "
                                            "(external-vision odometry quality -1)")
+    global_origin: tuple[float, ...] = option(
+        PX4_SITL_HOME_LLA, cli=(lambda lla: ",".join(str(v) for v in lla) or "none", parse_lla),
+        help="lat_deg,lon_deg,alt_m sent to the vehicle as its EKF's global origin (SET_GPS_GLOBAL_ORIGIN) until it "
+             "reports it: indoors, without GPS, PX4 has a global position only from it, and its Hold, and arming "
+             "in Hold, need one (default: PX4 SITL's home; a lab gives its own); 'none': not sent (a vehicle with GPS)")
+    origin_retry_s: float = 1.0
     forward_sources: tuple[str, ...] = option(("mocap",), cli=comma_list(),
                                               help="state sources forwarded to PX4 as external vision (comma-separated; "
                                                    "'' none)")
@@ -156,6 +180,13 @@ class GatewayCore:
             self.events.append(("warning", f"no setpoint for {age:.2f} s ({self.states_since_setpoint} states unanswered) "
                                            "in offboard: commanding hold"))
             return "hold"
+        if self.failsafe == "hold" and offboard and now_s - self._failsafe_since_s >= c.hold_confirm_s:
+            # acknowledged or not, the vehicle did not switch (PX4 v1.16 acks Hold as accepted and then says
+            # "Switching to Hold is currently not available" without a global position: measured)
+            self.failsafe, self._failsafe_since_s = "land", now_s
+            self.events.append(("warning", f"still in offboard {c.hold_confirm_s:.1f} s after the failsafe's hold: "
+                                           "commanding land"))
+            return "land"
         if self.failsafe == "hold" and now_s - self._failsafe_since_s >= self.config.land_after_s:
             self.failsafe, self._failsafe_since_s = "land", now_s
             self.events.append(("warning", f"{self.config.land_after_s:.1f} s in failsafe hold without an operator: "
@@ -184,10 +215,11 @@ class GatewayCore:
         self.last_pose_s = now_s
 
     def level_setpoint(self) -> Px4Attitude | None:
-        """What to fly while the motion capture is lost: level, at the vehicle's hover thrust, on the last
-        setpoint's heading (None before any setpoint). The controller has no state to answer; repeating its last
-        tilt would accelerate the vehicle blind (measured on PX4 SITL in a ±0.2 m limit cycle, 1 s lost: 2.8 m x,
-        5.5 m y)."""
+        """What to fly while the motion capture is lost, or while a failsafe's mode is not taken yet: level, at the
+        vehicle's hover thrust, on the last setpoint's heading (None before any setpoint). The controller has no
+        state to answer (or is gone); repeating its last tilt would accelerate the vehicle blind (measured on PX4
+        SITL in a ±0.2 m limit cycle, 1 s lost: 2.8 m x, 5.5 m y; the controller killed mid-lemniscate and a
+        refused hold: 11.8 m and a crash)."""
         if self.last_sent is None:
             return None
         return Px4Attitude(0.0, 0.0, self.last_sent.yaw_deg, self.hover_thrust_norm)
@@ -285,7 +317,8 @@ class Px4Link:
         self.tele = {"armed": None, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
                      "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0,
                      "autopilot": "", "status_text": ""}
-        self.system = self.action = self.offboard = self.mocap = None
+        self.system = self.action = self.offboard = self.direct = None
+        self.system_id = 0
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
         self.actions: queue.Queue = queue.Queue()
@@ -315,12 +348,12 @@ class Px4Link:
                 done(self._do(what))
         finally:
             with node.lock:  # no bus handler may reach a MAVSDK plugin once it is destroyed
-                self.system = self.action = self.offboard = self.mocap = None
+                self.system = self.action = self.offboard = self.direct = None
             self.mavsdk.destroy()
 
     def _connect(self) -> None:
         from mavsdk.plugins.action import Action
-        from mavsdk.plugins.mocap import Mocap
+        from mavsdk.plugins.mavlink_direct import MavlinkDirect
         from mavsdk.plugins.offboard import Offboard
         from mavsdk.plugins.telemetry import Telemetry
 
@@ -335,7 +368,8 @@ class Px4Link:
         if system is None:
             return
         tele = Telemetry(system)
-        self.action, self.offboard, self.mocap = Action(system), Offboard(system), Mocap(system)
+        self.action, self.offboard, self.direct = Action(system), Offboard(system), MavlinkDirect(system)
+        self.system_id = system.get_system_id()
         t = self.tele
         tele.subscribe_armed(lambda v, _: t.__setitem__("armed", bool(v)))
         tele.subscribe_in_air(lambda v, _: t.__setitem__("in_air", bool(v)))
@@ -348,6 +382,8 @@ class Px4Link:
         tele.subscribe_status_text(self._on_status_text)
         t["mode"] = tele.flight_mode().name  # MAVSDK calls subscribers on a change only; its mode here is the vehicle's
         threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
+        if len(self.config.global_origin) == 3:
+            threading.Thread(target=self._set_global_origin, args=(system,), name="px4-origin", daemon=True).start()
         self.telemetry = tele
         self.system = system
         self.node.event("info", f"connected to autopilot system {system.get_system_id()} on {self.config.mavlink}")
@@ -375,6 +411,41 @@ class Px4Link:
             return
         self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
+
+    def _set_global_origin(self, system) -> None:
+        """SET_GPS_GLOBAL_ORIGIN (MAVSDK's MavlinkDirect) every ``origin_retry_s`` until the vehicle's
+        GPS_GLOBAL_ORIGIN reports it (PX4 answers one after each: mavlink_receiver.cpp; EKF2 takes it in
+        setEkfGlobalOrigin, and its global position is then valid whenever its local one is: ekf.h)."""
+        import json
+
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        lat_deg, lon_deg, alt_m = self.config.global_origin
+        wanted = (round(lat_deg * 1e7), round(lon_deg * 1e7))
+        reported = threading.Event()
+
+        def on_origin(message, _user) -> None:
+            fields = json.loads(message.fields_json)
+            if (fields.get("latitude"), fields.get("longitude")) == wanted:
+                reported.set()
+
+        direct = self.direct
+        direct.subscribe_message("GPS_GLOBAL_ORIGIN", on_origin)
+        fields = {"target_system": system.get_system_id(), "latitude": wanted[0], "longitude": wanted[1],
+                  "altitude": round(alt_m * 1e3), "time_usec": 0}
+        message = MavlinkMessage("SET_GPS_GLOBAL_ORIGIN", target_system_id=system.get_system_id(),
+                                 fields_json=json.dumps(fields))
+        sent = 0
+        while not reported.is_set() and not self.node.stopping:
+            try:
+                direct.send_message(message)
+                sent += 1
+            except Exception as exc:  # MavlinkDirectError: the link is not up yet; the next try may pass
+                self.node.log(f"SET_GPS_GLOBAL_ORIGIN not sent: {exc}")
+            reported.wait(self.config.origin_retry_s)
+        if reported.is_set():
+            self.node.event("info", f"the vehicle's global origin is set: {lat_deg:.7f}°, {lon_deg:.7f}°, {alt_m:g} m "
+                                    f"({sent} SET_GPS_GLOBAL_ORIGIN sent)")
 
     # -- bus inputs (under the node lock; never block) ----------------------------------------
     def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
@@ -406,7 +477,7 @@ class Px4Link:
 
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
-        if msg.source in self.config.forward_sources and self.mocap is not None:
+        if msg.source in self.config.forward_sources and self.direct is not None:
             self.core.on_pose(received_s)
             self.last_pose = msg
             self._forward_pose(msg)
@@ -414,23 +485,31 @@ class Px4Link:
 
     def _forward_pose(self, msg: StateMsg, quality_percent: int = 100) -> None:
         """The state as external vision, in the form PX4 v1.16's EKF2 fuses (mavlink_receiver.cpp,
-        handle_message_odometry): estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which EKF2 does
-        not read), pose frame LOCAL_FRD (MOCAP_NED is not among the frames it accepts: the position arrives
-        as NaN), velocity in the body FRD frame (MAVSDK's child frame). ``quality_percent``: MAVLink's
-        ODOMETRY.quality, 100 for a tracked pose, -1 ("odometry has failed") for the last one repeated while the
-        motion capture is lost; EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp)."""
-        from mavsdk.plugins.mocap import (AngularVelocityBody, Covariance, Odometry, PositionBody, Quaternion,
-                                          SpeedBody)
+        handle_message_odometry): ODOMETRY with estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which
+        EKF2 does not read), pose frame LOCAL_NED (MOCAP_NED is not among the frames it accepts: the position
+        arrives as NaN; with LOCAL_FRD EKF2 takes the heading as relative (ev_yaw_control.cpp: yaw_align false)
+        and publishes no global position even with an origin, so PX4 refuses Hold: measured), velocity in the body
+        FRD frame. MAVSDK's Mocap plugin offers only MOCAP_NED and LOCAL_FRD, so the message goes through its
+        MavlinkDirect. Covariances unknown (NaN: EKF2 then uses EKF2_EVP_NOISE, EKF2_EVV_NOISE); body rates 0
+        (MavlinkDirect takes no NaN for a single field; EKF2 does not read them). ``quality_percent``: 100 for a
+        tracked pose, -1 ("odometry has failed") for the last one repeated while the motion capture is lost;
+        EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp)."""
+        import json
+
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         x, y, z = msg.pos_enu_m
         q = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
         v_frd = matrix_from_quat(q).T @ (NED_FROM_ENU @ np.asarray(msg.vel_enu_mps, dtype=float))
-        nan = Covariance([math.nan])
-        self.mocap.set_odometry(Odometry(
-            time_usec=0, frame_id=Odometry.MavFrame.LOCAL_FRD, position_body=PositionBody(y, x, -z),
-            q=Quaternion(*q), speed_body=SpeedBody(*(float(v) for v in v_frd)),
-            angular_velocity_body=AngularVelocityBody(math.nan, math.nan, math.nan), pose_covariance=nan,
-            velocity_covariance=nan, estimator_type=Odometry.MavEstimatorType.VISION, quality_percent=quality_percent))
+        unknown = ["NaN"] + [0.0] * 20
+        fields = {"time_usec": 0, "frame_id": MAV_FRAME_LOCAL_NED, "child_frame_id": MAV_FRAME_BODY_FRD,
+                  "x": y, "y": x, "z": -z, "q": [float(v) for v in q],
+                  "vx": float(v_frd[0]), "vy": float(v_frd[1]), "vz": float(v_frd[2]),
+                  "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0, "pose_covariance": unknown,
+                  "velocity_covariance": unknown, "reset_counter": 0, "estimator_type": MAV_ESTIMATOR_TYPE_VISION,
+                  "quality": quality_percent}
+        self.direct.send_message(MavlinkMessage("ODOMETRY", target_system_id=self.system_id,
+                                                fields_json=json.dumps(fields)))
 
     def _on_command(self, name: str, args: dict) -> tuple[bool, str]:
         """Runs without the node lock: waits (up to 5 s) for the worker to get the vehicle's answer."""
@@ -478,11 +557,13 @@ class Px4Link:
             with self.node.lock:
                 now = time.monotonic()
                 action = self.core.check_stale(now, offboard=self.tele["mode"] == "OFFBOARD", armed=self.tele["armed"])
-                if self.core.pose_failed(now) and self.mocap is not None and self.last_pose is not None:
+                pose_failed = self.core.pose_failed(now) and self.direct is not None and self.last_pose is not None
+                if pose_failed:
                     self._forward_pose(self.last_pose, quality_percent=-1)  # at the watchdog's 50 Hz
                     self.core.counts["pose_failed_sent"] += 1
+                if (pose_failed or self.core.failsafe) and self.offboard is not None and self.tele["mode"] == "OFFBOARD":
                     level = self.core.level_setpoint()
-                    if level is not None and self.offboard is not None and self.tele["mode"] == "OFFBOARD":
+                    if level is not None:
                         self._send_attitude(level)
                 self._drain_events()
             if action and self.system is not None:

@@ -136,6 +136,9 @@ class MavlinkVehicle:
             elif kind == "ODOMETRY":
                 self._record({"t": now, "kind": "odometry", "xyz_ned": [msg.x, msg.y, msg.z], "q": list(msg.q),
                               "frame": msg.frame_id})
+            elif kind == "SET_GPS_GLOBAL_ORIGIN":  # PX4 takes it as its EKF origin and reports it back
+                self._record({"t": now, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
+                self._send(lambda m: m.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, 0))
             elif kind == "PARAM_REQUEST_LIST":
                 self._send(lambda m: m.param_value_send(b"MIS_TAKEOFF_ALT", self.config.takeoff_height_m,
                                                         mavlink.MAV_PARAM_TYPE_REAL32, 1, 0))

@@ -155,3 +155,18 @@ def test_a_hold_the_vehicle_refuses_is_followed_by_land_at_once():
     core.hold_refused("COMMAND_DENIED")
     assert core.check_stale(10.62, offboard=True, armed=True) == "land" and core.failsafe == "land"
     assert "refused hold (COMMAND_DENIED): commanding land now" in core.events[-2][1]
+
+
+def test_a_hold_acknowledged_but_not_taken_is_followed_by_land_after_hold_confirm():
+    """PX4 v1.16 acks the failsafe's Hold as accepted and stays in offboard when it cannot switch (measured
+    without a global position): still in offboard hold_confirm_s later, the gateway commands land."""
+    core = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_max_s=0.5, land_after_s=3.0, hold_confirm_s=1.0))
+    core.on_setpoint(setpoint(), 10.0)
+    assert core.check_stale(10.6, offboard=True, armed=True) == "hold"
+    assert core.check_stale(11.5, offboard=True, armed=True) == ""
+    assert core.check_stale(11.61, offboard=True, armed=True) == "land" and core.failsafe == "land"
+    assert "still in offboard 1.0 s after the failsafe's hold" in core.events[-1][1]
+    taken = GatewayCore(GatewayConfig(stale_hold_s=0.3, stale_max_s=0.5, land_after_s=3.0, hold_confirm_s=1.0))
+    taken.on_setpoint(setpoint(), 10.0)
+    assert taken.check_stale(10.6, offboard=True, armed=True) == "hold"
+    assert taken.check_stale(11.61, offboard=False, armed=True) == "", "in hold: land only after land_after_s"
