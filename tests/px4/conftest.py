@@ -1,7 +1,10 @@
 """The px4 tier's flight: `neso up --vehicle px4` on a free PX4 instance, one per test module (``flight``)."""
 from __future__ import annotations
 
+import contextlib
 import os
+import subprocess
+import sys
 import time
 
 import pytest
@@ -9,26 +12,33 @@ import pytest
 from cli.paper_px4 import free_px4_instance
 from runtime.client import command
 from sim.px4_sitl import missing_px4, px4_home
-from tests.busutil import NesoUp, free_port, peer, wait_for
+from tests.busutil import REPO, NesoUp, free_port, peer, wait_for
 
 TOPICS = ("state", "truth", "setpoint", "reference", "telemetry", "recording")
 
 
 class Px4Flight(NesoUp):
-    def __init__(self, tmp):
-        endpoint = f"tcp/127.0.0.1:{free_port()}"
+    """``neso up --vehicle px4`` with ``extra`` flags, its recordings under ``tmp``."""
+
+    def __init__(self, tmp, *extra: str):
+        endpoint = self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         old = dict(os.environ)
         # MAVSDK writes its cache under $HOME/.cache/mavsdk: a HOME of the test's own; PX4 stays where make setup put it
         os.environ.update(HOME=str(tmp), NESO_PX4_HOME=str(px4_home()))
         try:
             self.t0 = time.monotonic()
             super().__init__("--vehicle", "px4", "--px4-instance", str(free_px4_instance()), "--hub", endpoint,
-                             "--no-trainer", "--no-dashboard", "--recordings-dir", str(tmp / "recordings"),
+                             "--no-trainer", "--no-dashboard", "--recordings-dir", str(tmp / "recordings"), *extra,
                              bus=peer(endpoint), topics=TOPICS)
         finally:
             os.environ.clear()
             os.environ.update(old)
         self.recordings = tmp / "recordings"
+
+    def cli(self, *args: str) -> subprocess.CompletedProcess:
+        """``neso ARGS`` as an operator types it, connected to this flight's hub."""
+        return subprocess.run([sys.executable, "-m", "cli.main", *args, "--connect", self.endpoint], cwd=REPO,
+                              capture_output=True, text=True, timeout=60)
 
     def cmd(self, service: str, name: str, **args):
         return command(self.s, self.probe.keys, service, name, args, timeout_s=8.0)
@@ -54,12 +64,20 @@ class Px4Flight(NesoUp):
         time.sleep(2.0)
 
 
-@pytest.fixture(scope="module")
-def flight(tmp_path_factory):
+@contextlib.contextmanager
+def px4_flight(tmp_path_factory, *extra: str):
+    """A :class:`Px4Flight` with ``extra`` flags; afterwards what every process said is kept in the test's folder
+    (``flight.log``, to read after a failure) and must hold no traceback."""
     assert not missing_px4(), missing_px4()  # make setup builds it (tests/README.md)
     tmp = tmp_path_factory.mktemp("px4")
-    f = Px4Flight(tmp)
+    f = Px4Flight(tmp, *extra)
     yield f
     out = f.close()
-    (tmp / "flight.log").write_text(out)  # what every process said, to read after a failure
+    (tmp / "flight.log").write_text(out)
     assert "Traceback" not in out, out[-4000:]
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    with px4_flight(tmp_path_factory) as f:
+        yield f
