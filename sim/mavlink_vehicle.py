@@ -15,9 +15,9 @@ setpoints use): **hold** (AUTO.LOITER) keeps the position where it was entered; 
 (AUTO.LAND) descends at 0.5 m/s; once at rest on the ground it idles, level, without position
 control (PX4's land detector), and disarms 2 s of vehicle time later (PX4's COM_DISARM_LAND);
 **offboard** applies the newest SET_ATTITUDE_TARGET, and if none has come for
-``offboard_loss_s`` (PX4's COM_OF_LOSS_T, default 1 s) it lands by itself (COM_OBL_RC_ACT as this world's
-PX4 airframe sets it: the last line of defence behind the gateway's own failsafe) and, as PX4 does, returns to
-offboard when setpoints stream again. Disarmed: motors off. It says what PX4 v1.16 says in STATUSTEXT for the
+``offboard_loss_s`` it holds (or lands) by itself, as the world's PX4 airframe sets COM_OF_LOSS_T and
+COM_OBL_RC_ACT (``sim/px4/neso_quad.params``, read here: 0.3 s, Hold; the last line of defence behind the gateway's
+own failsafe) and, as PX4 does, returns to offboard when setpoints stream again. Disarmed: motors off. It says what PX4 v1.16 says in STATUSTEXT for the
 same events (arming, disarming, land, landing detected, the failsafe). Where it still differs from PX4 SITL:
 README, "Real PX4 in the loop".
 
@@ -32,7 +32,7 @@ import math
 import os
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 os.environ.setdefault("MAVLINK20", "1")  # ODOMETRY and MAVSDK's messages need MAVLink 2
 
@@ -42,12 +42,14 @@ from pymavlink import mavutil  # noqa: E402
 from neso.control import ControlConfig, PositionController  # noqa: E402
 from neso.frames import attitude_enu_from_ned, quat_ned_from_enu_euler, quat_to_euler_ned  # noqa: E402
 from neso.types import AttitudeSetpoint, Reference, StateMeasurement, VehicleModel  # noqa: E402
+from sim.px4_sitl import load_params  # noqa: E402
 
 mavlink = mavutil.mavlink
 
 # PX4 main / sub modes (px4_custom_mode.h)
 MAIN_MANUAL, MAIN_POSCTL, MAIN_AUTO, MAIN_OFFBOARD = 1, 3, 4, 6
 SUB_READY, SUB_TAKEOFF, SUB_LOITER, SUB_LAND = 1, 2, 3, 6
+OFFBOARD_LOSS_ACTIONS = {4: "land", 5: "hold"}  # COM_OBL_RC_ACT values the imitation flies (PX4: 0-7)
 MODE_NAMES = {(MAIN_MANUAL, 0): "manual", (MAIN_POSCTL, 0): "posctl", (MAIN_AUTO, SUB_READY): "ready",
               (MAIN_AUTO, SUB_TAKEOFF): "takeoff", (MAIN_AUTO, SUB_LOITER): "hold", (MAIN_AUTO, SUB_LAND): "land",
               (MAIN_OFFBOARD, 0): "offboard"}
@@ -69,7 +71,9 @@ class VehicleConfig:
     takeoff_height_m: float = 1.0
     climb_speed_mps: float = 0.5
     land_speed_mps: float = 0.5
-    offboard_loss_s: float = 1.0
+    # PX4's offboard-loss timeout and action as the world's airframe sets them (what PX4 SITL flies)
+    offboard_loss_s: float = field(default_factory=lambda: float(load_params()["COM_OF_LOSS_T"]))
+    offboard_loss_action: str = field(default_factory=lambda: OFFBOARD_LOSS_ACTIONS[int(load_params()["COM_OBL_RC_ACT"])])
     disarm_after_landing_s: float = 2.0  # PX4's COM_DISARM_LAND default
     battery_full_v: float = 16.8
     battery_empty_v: float = 13.2
@@ -226,17 +230,19 @@ class MavlinkVehicle:
                 self._target = None
                 return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
             fresh = now - self.offboard_setpoint_s <= self.config.offboard_loss_s
-            if self._offboard_lost and fresh and (self.main_mode, self.sub_mode) == (MAIN_AUTO, SUB_LAND):
+            if self._offboard_lost and fresh and (self.main_mode, self.sub_mode) in ((MAIN_AUTO, SUB_LAND),
+                                                                                      (MAIN_AUTO, SUB_LOITER)):
                 self._set_mode(MAIN_OFFBOARD, 0)  # PX4 ends its offboard-loss failsafe when setpoints stream again
                 self._record({"t": now, "kind": "failsafe", "what": "setpoints again: back to offboard"})
             if self.main_mode == MAIN_OFFBOARD:
                 if fresh:
                     self._offboard_lost = False
                     return self.offboard_setpoint
-                # PX4's offboard-loss action COM_OBL_RC_ACT, Land in this world's airframe (sim/px4/neso_quad.params)
-                self._record({"t": now, "kind": "failsafe", "what": "offboard loss: land"})
+                # PX4's offboard-loss action COM_OBL_RC_ACT (sim/px4/neso_quad.params)
+                action = self.config.offboard_loss_action
+                self._record({"t": now, "kind": "failsafe", "what": f"offboard loss: {action}"})
                 self._say(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated")
-                self._set_mode(MAIN_AUTO, SUB_LAND)
+                self._set_mode(MAIN_AUTO, SUB_LOITER if action == "hold" else SUB_LAND)
                 self._offboard_lost = True
             if self._target is None:
                 self._target = np.array(meas.pos_enu_m, dtype=float)

@@ -1,12 +1,14 @@
 """The MAVLink imitation of PX4 (sim/mavlink_vehicle.py) where it was aligned with PX4 v1.16.0 SITL (README, "Real
-PX4 in the loop"): offboard loss → its Land (COM_OBL_RC_ACT in this world's airframe) with PX4's "Failsafe
-activated", back to offboard when setpoints stream again, and PX4's words for arming, landing and its auto-disarm
+PX4 in the loop"): offboard loss → Hold after 0.3 s (COM_OBL_RC_ACT, COM_OF_LOSS_T in this world's airframe) with
+PX4's "Failsafe activated", back to offboard when setpoints stream again, and PX4's words for arming, landing and its auto-disarm
 2 s after touch-down. Driven over real MAVLink (pymavlink) on loopback UDP, its physics stepped by hand."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
+import pytest
 from pymavlink import mavutil
 
 from neso.types import StateMeasurement
@@ -16,10 +18,14 @@ from tests.busutil import free_port
 mavlink = mavutil.mavlink
 
 
-def test_offboard_loss_lands_says_so_and_setpoints_streaming_again_end_it():
+@pytest.mark.parametrize("action, mode", [(None, "hold"), ("land", "land")])
+def test_offboard_loss_holds_or_lands_says_so_and_setpoints_streaming_again_end_it(action, mode):
+    """As the airframe sets it (COM_OF_LOSS_T 0.3 s, COM_OBL_RC_ACT Hold), or Land."""
     port = free_port()
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, dialect="common")
-    vehicle = MavlinkVehicle(VehicleConfig(target=f"udpout:127.0.0.1:{port}"), dt_s=0.02)
+    config = VehicleConfig(target=f"udpout:127.0.0.1:{port}")
+    assert (config.offboard_loss_s, config.offboard_loss_action) == (0.3, "hold")  # sim/px4/neso_quad.params
+    vehicle = MavlinkVehicle(config if action is None else replace(config, offboard_loss_action=action), dt_s=0.02)
     said: list[str] = []
     try:
         hover = StateMeasurement(0.0, np.array([0.0, 0.0, 1.0]), np.zeros(3), 0.0, 0.0, 0.0)
@@ -47,8 +53,10 @@ def test_offboard_loss_lands_says_so_and_setpoints_streaming_again_end_it():
         command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MAIN_OFFBOARD)
         run(0.5, True)
         assert vehicle.mode_name == "offboard" and vehicle.armed
-        run(1.3, False)  # COM_OF_LOSS_T 1 s
-        assert vehicle.mode_name == "land" and "Failsafe activated" in said, (vehicle.mode_name, said)
+        run(0.2, False)
+        assert vehicle.mode_name == "offboard", "not before COM_OF_LOSS_T"
+        run(0.4, False)
+        assert vehicle.mode_name == mode and "Failsafe activated" in said, (vehicle.mode_name, said)
         run(0.3, True)
         assert vehicle.mode_name == "offboard", "PX4 ends its offboard-loss failsafe when setpoints stream again"
         assert "Armed by external command" in said, said
