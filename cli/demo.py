@@ -58,6 +58,10 @@ def add_parser(subparsers) -> None:
     t.add_argument("--seed", type=int, default=1, help="the simulated world's seed (gusts, mocap noise)")
     t.add_argument("--force-offer", action="store_true",
                    help="offer and promote the candidate even if predicted to fly worse (to see what it does)")
+    t.add_argument("--world", default="builtin", choices=("builtin", "px4"),
+                   help="builtin: the world's own inner loop, the two lemniscates paired (the world restarts with "
+                        "its seed); px4: real PX4 SITL flies the world (`neso up --vehicle px4`), taken off as an "
+                        "operator does; its world cannot restart under PX4, so the lemniscates are not paired")
 
 
 @dataclass
@@ -92,6 +96,7 @@ class TdrReport:
     certificate: dict = field(default_factory=dict)  # the candidate's, for the gains flown
     canary: str = ""  # the canary's last word after the second run
     lemniscate_start_t_s: list = field(default_factory=list)  # world clock at each run's first lemniscate sample
+    world: str = "builtin"  # or "px4": PX4 SITL in the loop, the lemniscates not paired
 
     def lines(self) -> list[str]:
         st = ", ".join(f"{k} {v:.2f}" for k, v in self.stage_s.items())
@@ -115,8 +120,9 @@ class TdrReport:
             f"({self.predicted.get('change', float('nan')) * 100:+.0f} %); offered: {self.offered}; "
             f"{self.certificate.get('text', 'certificate unknown')}",
             f"canary: {self.canary or 'no verdict'}",
-            "paired worlds (same seed): lemniscates began at world t = "
-            + ", ".join(f"{t:.2f}" for t in self.lemniscate_start_t_s) + " s",
+            ("paired worlds (same seed): lemniscates began at world t = " if self.world == "builtin" else
+             "PX4 SITL in the loop, not paired (one world flies on: the runs also meet different gusts): lemniscates "
+             "began at world t = ") + ", ".join(f"{t:.2f}" for t in self.lemniscate_start_t_s) + " s",
         ]
 
 
@@ -241,11 +247,12 @@ class _Events:
 
 def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
                  fly_after: bool = True, dashboard_port: int | None = None, seed: int = 1,
-                 force_offer: bool = False) -> TdrReport:
+                 force_offer: bool = False, world: str = "builtin") -> TdrReport:
     """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
     ``fly_after`` False: stop once the new network flies (the bench: stage times only).
     ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard).
-    ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse."""
+    ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse;
+    ``world`` px4: PX4 SITL flies the world (it takes off first; the lemniscates are not paired)."""
     from runtime.bus import BusConfig, open_session
     from runtime.launcher import interrupt
 
@@ -253,12 +260,16 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
             "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry, "--seed", str(seed)]
     argv += ["--no-dashboard"] if dashboard_port is None else ["--dashboard-port", str(dashboard_port)]
+    if world == "px4":
+        from cli.paper_px4 import free_px4_instance
+
+        argv += ["--vehicle", "px4", "--px4-instance", str(free_px4_instance())]
     up_log = open(os.path.join(workdir, "neso-up.log"), "w")
     up = subprocess.Popen(argv, stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
     session = open_session(BusConfig(connect=(hub,)))
     try:
-        loop = _Loop.watch(session, log, registry)
+        loop = _Loop.watch(session, log, registry, world)
         try:
             if on_up is not None:
                 on_up(up)
@@ -280,22 +291,23 @@ class _Loop:
     cmd: object
     log: object
     registry: str
+    world: str = "builtin"
     report: TdrReport = field(default_factory=TdrReport)
 
     @classmethod
-    def watch(cls, session, log, registry: str) -> "_Loop":
+    def watch(cls, session, log, registry: str, world: str = "builtin") -> "_Loop":
         from runtime.client import command
         from runtime.probe import Probe
         from runtime.schema import Keys
 
         keys = Keys("uav1")
         probe = Probe(session, keys.vehicle, ("state", "truth", "estimate", "setpoint", "reference", "network",
-                                              "recording"))
+                                              "recording", "telemetry"))
         events = _Events(session, keys, ("trainer", "estimator", "recorder"))
 
         def cmd(service, command_name, timeout_s=5.0, **args):
             return command(session, keys, service, command_name, args, timeout_s=timeout_s)
-        return cls(probe, events, cmd, log, registry)
+        return cls(probe, events, cmd, log, registry, world, TdrReport(world=world))
 
     def close(self) -> None:
         self.events.close()
@@ -304,6 +316,8 @@ class _Loop:
     def run(self, *, epochs: int, fly_after: bool, force_offer: bool) -> TdrReport:
         report = self.report
         self.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 100, 60.0)
+        if self.world == "px4":
+            self.take_off_with_px4()
         first_run, t_stop = self.record_first_lemniscate()
         done, t_train = self.train(epochs, force_offer)
         _registry_figures(self.registry, report)
@@ -321,8 +335,9 @@ class _Loop:
                           (t_offered - t_stop) + (t_promoted - t_promote)}
         report.stage_s.update({f"trainer {k}": float(v) for k, v in _stage_times(done).items()})
         if fly_after:
-            self.log("promoted; flying the lemniscate again, in the same world as the first")
-            since = restart_world(self.probe, self.cmd)
+            self.log("promoted; flying the lemniscate again, " + ("in the same world as the first" if self.world == "builtin"
+                                                                   else "in the world flying on (not paired)"))
+            since = self.new_world()
             self.cmd("recorder", "start")
             second_run = fly_lemniscate(self.probe, self.cmd, since)
             report.lemniscate_start_t_s.append(second_run.start_t_s)
@@ -330,11 +345,34 @@ class _Loop:
             analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report)
         return report
 
+    def new_world(self) -> float:
+        """Where a lemniscate run's samples begin (a stamp, s): the built-in world restarted with its seed (the runs
+        paired); with PX4 the world flies on (PX4 would not follow a restart), from now."""
+        if self.world == "builtin":
+            return restart_world(self.probe, self.cmd)
+        return self.probe.get("state")[-1].stamp_s
+
+    def take_off_with_px4(self) -> None:
+        """As an operator does with PX4: its "Ready for takeoff" (offboard and arm are refused until then, so each
+        is asked once a second), then the controller's take-off to its hover."""
+        self.log("PX4: waiting for it to be ready, then offboard, arm and take off")
+        for service, name in (("px4_gateway", "offboard_start"), ("px4_gateway", "arm")):
+            deadline = time.monotonic() + 120.0
+            while not (reply := self.cmd(service, name, timeout_s=8.0)).ok:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"PX4 refused {name} for 120 s: {reply.message}")
+                time.sleep(1.0)
+        for name in ("arm", "takeoff"):
+            reply = self.cmd("controller", name)
+            assert reply.ok, reply.message
+        self.probe.wait_for("truth", lambda m: m.pos_enu_m[2] > 0.9, 30.0)
+        time.sleep(2.0)
+
     def record_first_lemniscate(self) -> tuple[Run, float]:
         """The base network flies the lemniscate, recorded; the recording is stopped (and its path kept)."""
         probe, cmd = self.probe, self.cmd
         self.log("flying the lemniscate under Neural-ESO with the base network, recording")
-        first_run = fly_lemniscate(probe, cmd, restart_world(probe, cmd))
+        first_run = fly_lemniscate(probe, cmd, self.new_world())
         self.report.lemniscate_start_t_s.append(first_run.start_t_s)
         path = probe.wait_for("recording", lambda m: m.recording and m.path and m.stamp_s > first_run.since_s, 5.0).path
         t_stop = time.monotonic()
@@ -360,7 +398,7 @@ class _Loop:
     def fly_base_again(self, first_run: Run) -> None:
         """Nothing was offered: the same network flies the same world again (the pairing's own noise)."""
         report, probe = self.report, self.probe
-        second_run = fly_lemniscate(probe, self.cmd, restart_world(probe, self.cmd))
+        second_run = fly_lemniscate(probe, self.cmd, self.new_world())
         first_run = replace(first_run, until_s=second_run.since_s)
         report.lemniscate_start_t_s.append(second_run.start_t_s)
         refs, truths = probe.get("reference"), probe.get("truth")
@@ -447,7 +485,7 @@ def run(args) -> int:
     workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
     os.makedirs(workdir, exist_ok=True)
     report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs, dashboard_port=args.dashboard_port or None,
-                          seed=args.seed, force_offer=args.force_offer)
+                          seed=args.seed, force_offer=args.force_offer, world=args.world)
     print("\n".join(report.lines()))
     print(f"recordings, registry and the neso up log are in {workdir}")
     if args.json:
