@@ -164,15 +164,15 @@ class MavlinkVehicle:
                 continue
             now = time.monotonic()
             kind = msg.get_type()
+            if kind == "ODOMETRY" and msg.quality >= 1:  # EKF2_EV_QMIN 1 (sim/px4/neso_quad.params): -1 is not fused
+                self._on_external_vision(now)
             if kind == "SET_ATTITUDE_TARGET":
                 self._on_attitude_target(msg, now)
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
                 self._on_command(msg, now)
             elif kind == "ODOMETRY":
                 self._record({"t": now, "kind": "odometry", "xyz_ned": [msg.x, msg.y, msg.z], "q": list(msg.q),
-                              "frame": msg.frame_id, "quality": int(msg.quality)})
-                if msg.quality >= 1:  # EKF2_EV_QMIN 1 (sim/px4/neso_quad.params): -1 "failed" is not fused
-                    self._on_external_vision(now)
+                              "frame": msg.frame_id})
             elif kind == "PARAM_REQUEST_LIST":
                 self._send(lambda m: m.param_value_send(b"MIS_TAKEOFF_ALT", self.config.takeoff_height_m,
                                                         mavlink.MAV_PARAM_TYPE_REAL32, 1, 0))

@@ -142,13 +142,13 @@ def test_arming_is_refused_in_px4s_words_until_external_vision_has_settled_then_
 
 def test_external_vision_lost_longer_than_the_timeout_makes_it_not_ready_until_it_has_settled_again():
     # short figures to keep the tier fast; the defaults (1.9 s, 5 s) are PX4's (VehicleConfig)
-    gcs = Station(ev_settle_s=0.3, ev_timeout_s=0.6)
+    gcs = Station(ev_settle_s=0.3, ev_timeout_s=1.0)
     try:
         gcs.ready_for_takeoff()
-        gcs.stream(0.4, quality=None)  # a gap shorter than the timeout: still ready
+        gcs.stream(0.3, quality=None)  # a gap shorter than the timeout: still ready
         assert gcs.vehicle.ready and gcs.standby()
         gcs.stream(0.3)
-        gcs.stream(2.0, quality=-1)  # lost (the gateway's "failed" poses) longer than the timeout (and 2 s: below)
+        gcs.stream(2.0, quality=-1)  # lost (the gateway's "failed" poses) longer than the timeout and PX4's 2 s
         assert not gcs.vehicle.ready and gcs.last("HEARTBEAT").system_status == mavlink.MAV_STATE_UNINIT
         assert not gcs.last("SYS_STATUS").onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
         assert gcs.arm() == mavlink.MAV_RESULT_TEMPORARILY_REJECTED and gcs.said()[-1] == ARMING_DENIED
