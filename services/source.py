@@ -148,7 +148,7 @@ def _run_sim_mavlink(node, config: SourceConfig) -> None:
     core = SimSource(config, clock=time.monotonic)
     vehicle = MavlinkVehicle(VehicleConfig(target=config.mavlink_out, log_path=config.mavlink_log,
                                            hover_thrust_norm=core.sim.config.params.hover_thrust_norm),
-                             dt_s=1.0 / config.rate_hz)
+                             dt_s=1.0 / config.rate_hz, console=node.log)
     put_state, put_truth = node.publisher("state"), node.publisher("truth")
     node.status_hook = lambda: (f"real time, MAVLink vehicle on {config.mavlink_out}: mode {vehicle.mode_name}, "
                                 f"armed {vehicle.armed}, t={core.sim.t_s:.2f} s, sample {core.seq}")

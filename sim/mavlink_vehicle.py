@@ -17,9 +17,23 @@ control (PX4's land detector), and disarms 2 s of vehicle time later (PX4's COM_
 **offboard** applies the newest SET_ATTITUDE_TARGET, and if none has come for
 ``offboard_loss_s`` it holds (or lands) by itself, as the world's PX4 airframe sets COM_OF_LOSS_T and
 COM_OBL_RC_ACT (``sim/px4/neso_quad.params``, read here: 0.3 s, Hold; the last line of defence behind the gateway's
-own failsafe) and, as PX4 does, returns to offboard when setpoints stream again. Disarmed: motors off. It says what PX4 v1.16 says in STATUSTEXT for the
-same events (arming, disarming, land, landing detected, the failsafe). Where it still differs from PX4 SITL:
+own failsafe) and, as PX4 does, returns to offboard when setpoints stream again. Disarmed: motors off. It says
+what PX4 v1.16 says in STATUSTEXT for the same events (arming, disarming, land, landing detected, the failsafe);
+it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, as PX4 does. Where it still differs from PX4 SITL:
 README, "Real PX4 in the loop".
+
+**Pre-flight checks** (PX4's EKF2 settling on external vision, then commander's arming checks): it is ready
+only once it has received external-vision ODOMETRY (quality at least EKF2_EV_QMIN 1, as the gateway forwards the
+motion capture) without a gap longer than ``ev_timeout_s`` for ``ev_settle_s``. Until then an arm command is
+refused as PX4 refuses it (COMMAND_ACK ``MAV_RESULT_TEMPORARILY_REJECTED`` and the CRITICAL STATUSTEXT "Arming
+denied: Resolve system health failures first", Commander::arm); when external vision starts arriving it says
+PX4's CRITICAL "Preflight Fail: heading estimate not stable" (PX4 reports its checks on a change of their
+results, at most once per ``health_report_interval_s``, not periodically); ready, it prints "Ready for
+takeoff!" to its ``console`` once in its life, as PX4 SITL's commander does on its console (PX4_INFO: a log line,
+never a STATUSTEXT). Over MAVLink readiness shows as PX4 shows it: HEARTBEAT ``system_status`` UNINIT while not
+ready, STANDBY when ready (MAVLink's HEARTBEAT stream), and SYS_STATUS's ``MAV_SYS_STATUS_PREARM_CHECK`` health
+bit (MAVSDK's ``health.is_armable``). External vision lost for longer than ``ev_timeout_s`` while disarmed makes
+it not ready again, silently, until it has settled again.
 
 Everything received is logged (``log``, and as JSON lines to ``log_path`` if given) with its
 ``time.monotonic()`` arrival stamp, so tests can check what actually reached the vehicle.
@@ -32,6 +46,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 os.environ.setdefault("MAVLINK20", "1")  # ODOMETRY and MAVSDK's messages need MAVLink 2
@@ -53,6 +68,9 @@ OFFBOARD_LOSS_ACTIONS = {4: "land", 5: "hold"}  # COM_OBL_RC_ACT values the imit
 MODE_NAMES = {(MAIN_MANUAL, 0): "manual", (MAIN_POSCTL, 0): "posctl", (MAIN_AUTO, SUB_READY): "ready",
               (MAIN_AUTO, SUB_TAKEOFF): "takeoff", (MAIN_AUTO, SUB_LOITER): "hold", (MAIN_AUTO, SUB_LAND): "land",
               (MAIN_OFFBOARD, 0): "offboard"}
+ARMING_DENIED = "Arming denied: Resolve system health failures first"  # Commander::arm, canArm false
+NOT_SETTLED = "Preflight Fail: heading estimate not stable"  # estimatorCheck: pre_flt_fail_innov_heading
+READY = "Ready for takeoff!"  # Commander::checkAndInformReadyForTakeoff, SITL only, PX4_INFO once
 ACCEPTED_COMMANDS = {
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_NAV_TAKEOFF,
     mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_CMD_REQUEST_MESSAGE,
@@ -78,15 +96,26 @@ class VehicleConfig:
     battery_full_v: float = 16.8
     battery_empty_v: float = 13.2
     battery_minutes: float = 10.0
+    # PX4 v1.16.0 SITL in this world, from its first external-vision sample (vehicle_visual_odometry) to
+    # commander's "Ready for takeoff!", read from three boots' ULogs: 1.93, 1.94, 1.94 s (EKF2's heading
+    # innovation test passes ~0.9 s after the first sample, commander's checks pass ~1 s later).
+    ev_settle_s: float = 1.9
+    # EKF2_NOAID_TOUT's default (EKF2's valid_timeout_max, 5 s): inertial dead reckoning that long and EKF2 reports
+    # the local position invalid, which fails commander's arming checks. A stand-in: PX4 also stops fusing after
+    # 1 s (no_aid_timeout_max) and may fail on the position error growing first; here only the 5 s count.
+    ev_timeout_s: float = 5.0
+    health_report_interval_s: float = 2.0  # PX4's HealthAndArmingChecks Report: at most one report per 2 s
     log_path: str = ""
 
 
 class MavlinkVehicle:
     """One simulated PX4. The simulator loop calls :meth:`control` each period (what to apply) and
-    :meth:`publish` after stepping (telemetry); a receiver thread handles what arrives."""
+    :meth:`publish` after stepping (telemetry); a receiver thread handles what arrives. ``console``: where it
+    prints what PX4 prints on its console only ("Ready for takeoff!"); the service passes its log."""
 
-    def __init__(self, config: VehicleConfig, *, dt_s: float) -> None:
+    def __init__(self, config: VehicleConfig, *, dt_s: float, console: Callable[[str], None] | None = None) -> None:
         self.config = config
+        self.console = console
         self.dt_s = dt_s
         self.conn = mavutil.mavlink_connection(config.target, source_system=config.system_id,
                                                source_component=mavlink.MAV_COMP_ID_AUTOPILOT1, dialect="common")
@@ -106,6 +135,13 @@ class MavlinkVehicle:
         self._home_enu_m: np.ndarray | None = None
         self._last_meas: StateMeasurement | None = None
         self._on_ground = True
+        self._ev_since_s: float | None = None  # monotonic start of the current unbroken external-vision run
+        self._ev_last_s = -math.inf
+        self.ready = False  # its pre-flight checks pass (module docstring)
+        self._said_ready = False
+        self._last_report_s = -math.inf
+        self._report_due = False  # a change of the checks' results not yet reported (PX4's rate limit)
+        self._text_id = 0  # STATUSTEXT id, one per text
         self._t0 = time.monotonic()
         self._next_slow_s = 0.0
         self._next_hb_s = 0.0
@@ -133,6 +169,8 @@ class MavlinkVehicle:
                 continue
             now = time.monotonic()
             kind = msg.get_type()
+            if kind == "ODOMETRY" and msg.quality >= 1:  # EKF2_EV_QMIN 1 (sim/px4/neso_quad.params): -1 is not fused
+                self._on_external_vision(now)
             if kind == "SET_ATTITUDE_TARGET":
                 self._on_attitude_target(msg, now)
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
@@ -163,16 +201,58 @@ class MavlinkVehicle:
             entry["rejected"] = True  # PX4 ignores such a setpoint; the log shows it arrived
         self._record(entry)
 
+    # -- pre-flight checks (module docstring) -----------------------------------------------------
+    def _on_external_vision(self, now: float) -> None:
+        with self.lock:
+            if self._ev_since_s is None or now - self._ev_last_s > self.config.ev_timeout_s:
+                self._ev_since_s = now  # a new run: EKF2 (re)starts fusing, its heading innovation is large
+                self._report_due = True
+            self._ev_last_s = now
+        self._check(now)
+
+    def _check(self, now: float) -> None:
+        """Commander's checks (PX4 runs them at 10 Hz; here on every ODOMETRY and telemetry step)."""
+        c = self.config
+        say, changed, became_ready = "", False, False
+        with self.lock:
+            if self._ev_since_s is not None and now - self._ev_last_s > c.ev_timeout_s:
+                self._ev_since_s = None  # EKF2's local position invalid
+            ready = self._ev_since_s is not None and now - self._ev_since_s >= c.ev_settle_s
+            if self.armed:
+                ready = ready or self.ready  # once flying, its failsafes (not these checks) act on a loss
+            if ready != self.ready:
+                self.ready, changed, became_ready = ready, True, ready
+                self._record({"t": now, "kind": "preflight", "ready": ready})
+            if self._report_due and not ready and now - self._last_report_s >= c.health_report_interval_s:
+                self._report_due, self._last_report_s, say = False, now, NOT_SETTLED
+            elif ready:
+                self._report_due = False
+            print_ready = became_ready and not self._said_ready
+            self._said_ready = self._said_ready or print_ready
+        if say:
+            self._say(mavlink.MAV_SEVERITY_CRITICAL, say)
+        if print_ready:
+            self._record({"t": now, "kind": "console", "text": READY})
+            if self.console is not None:
+                self.console(READY)
+        if changed:
+            self._heartbeat()  # system_status changes with the checks
+
     def _on_command(self, msg, now: float) -> None:
         cmd = int(msg.command)
         params = [float(getattr(msg, f"param{i}")) for i in range(1, 5)]
         if msg.get_type() == "COMMAND_LONG":
             params += [float(msg.param5), float(msg.param6), float(msg.param7)]
         result = mavlink.MAV_RESULT_ACCEPTED if cmd in ACCEPTED_COMMANDS else mavlink.MAV_RESULT_UNSUPPORTED
+        self._check(now)
         with self.lock:
-            said = ""
+            said, severity = "", mavlink.MAV_SEVERITY_INFO
             if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-                if params[0] >= 0.5:
+                if params[0] >= 0.5 and not self.armed and not self.ready:
+                    # PX4 checks an external arm command even when forced (21196): Commander::arm
+                    result, said, severity = mavlink.MAV_RESULT_TEMPORARILY_REJECTED, ARMING_DENIED, \
+                        mavlink.MAV_SEVERITY_CRITICAL
+                elif params[0] >= 0.5:
                     self.armed, self._touchdown_s = True, None
                     said = "Armed by external command"
                 elif self._on_ground or params[1] == 21196:  # 21196: forced disarm
@@ -199,7 +279,7 @@ class MavlinkVehicle:
                       "armed": state[0], "mode": state[1]})
         self._send(lambda m: m.command_ack_send(cmd, result, 100, 0, msg.get_srcSystem(), msg.get_srcComponent()))
         if said:
-            self._say(mavlink.MAV_SEVERITY_INFO, said)
+            self._say(severity, said)
         if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             self._send_autopilot_version()
         if cmd == mavlink.MAV_CMD_DO_SET_MODE or cmd in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
@@ -289,7 +369,8 @@ class MavlinkVehicle:
         with self.lock:
             base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
             custom = (self.main_mode << 16) | (self.sub_mode << 24)
-            status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
+            status = (mavlink.MAV_STATE_ACTIVE if self.armed else
+                      mavlink.MAV_STATE_STANDBY if self.ready else mavlink.MAV_STATE_UNINIT)
         self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, status))
 
     def _send_autopilot_version(self) -> None:
@@ -300,11 +381,17 @@ class MavlinkVehicle:
     def _say(self, severity: int, text: str) -> None:
         """STATUSTEXT in PX4 v1.16's words for the same event (commander's mavlink_log_*), logged too."""
         self._record({"t": time.monotonic(), "kind": "statustext", "text": text})
-        self._send(lambda m: m.statustext_send(severity, text.encode()[:50]))
+        data = text.encode()
+        with self.send_lock:
+            self._text_id = self._text_id % 0xFFFF + 1
+            text_id = self._text_id
+        for seq, k in enumerate(range(0, len(data), 50)):  # PX4's STATUSTEXT stream: 50-byte chunks of one id
+            self._send(lambda m, chunk=data[k:k + 50], seq=seq: m.statustext_send(severity, chunk, text_id, seq))
 
     def publish(self, meas: StateMeasurement, *, t_s: float, body_rates_frd_rps=(0.0, 0.0, 0.0)) -> None:
         """Telemetry after a simulator step: fast messages every call, slow ones at 1–10 Hz."""
         now = time.monotonic()
+        self._check(now)
         boot_ms = int((now - self._t0) * 1e3) & 0xFFFFFFFF
         pos_ned = (float(meas.pos_enu_m[1]), float(meas.pos_enu_m[0]), -float(meas.pos_enu_m[2]))
         vel_ned = (float(meas.vel_enu_mps[1]), float(meas.vel_enu_mps[0]), -float(meas.vel_enu_mps[2]))
@@ -337,8 +424,9 @@ class MavlinkVehicle:
         self._send(lambda m: m.home_position_send(int(lat0 * 1e7), int(lon0 * 1e7), int(alt0 * 1e3), 0.0, 0.0, 0.0,
                                                   [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0))
         volts, remaining = self.battery(time.monotonic() - self._t0)
-        self._send(lambda m: m.sys_status_send(0, 0, 0, 500, int(volts * 1e3), -1, int(remaining * 100), 0, 0, 0, 0,
-                                               0, 0))
+        health = mavlink.MAV_SYS_STATUS_PREARM_CHECK if self.ready else 0  # PX4's SYS_STATUS stream sets only this
+        self._send(lambda m: m.sys_status_send(0, 0, health, 500, int(volts * 1e3), -1, int(remaining * 100), 0, 0, 0,
+                                               0, 0, 0))
         cells = [int(volts / 4 * 1e3)] * 4 + [65535] * 6
         self._send(lambda m: m.battery_status_send(0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO,
                                                    2500, cells, -1, -1, -1, int(remaining * 100)))

@@ -19,7 +19,7 @@ from recordings.reader import read_recording
 from runtime.client import command
 from runtime.graph import role as graph_role
 from runtime.probe import Probe
-from tests.busutil import children_of, free_port, neso, peer, role_pid, session
+from tests.busutil import children_of, free_port, neso, peer, role_pid, session, wait_for
 
 TOPICS = ("state", "setpoint", "reference", "telemetry", "recording")
 
@@ -73,6 +73,9 @@ def test_the_mavlink_flow_records_one_flight_per_flight_and_stops_within_3_s_of_
             cmd("controller", "land")
             probe.wait_for("setpoint", lambda m: m.stamp_s > t0 and m.thrust_n == 0.0, 10.0)
 
+            # as an operator does with PX4: its "Ready for takeoff!" (on its console) before arming
+            wait_for("the simulated PX4 is ready for takeoff", lambda: any("Ready for takeoff" in line
+                                                                            for line in output), 10)
             cmd("px4_gateway", "arm")
             cmd("px4_gateway", "offboard_start")
             t0 = time.monotonic()

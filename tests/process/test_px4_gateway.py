@@ -1,10 +1,10 @@
 """The PX4 gateway end to end: `neso up --vehicle mavlink` (the sim as a MAVLink PX4, real MAVSDK over
 UDP loopback, real Zenoh, real processes), checked against what the simulated PX4 logged as received.
 
-One flight, tests in file order: bad setpoints while disarmed (sanity), then arm → offboard →
-take-off → hover → landing test → land, telemetry on the bus, then a second take-off and `kill -9`
-of the controller (failsafe hold within 0.5 s, then land). A twin flight on the direct path (its own
-`neso up`, same scenario and seed) takes off and hovers at the same time as the first take-off, so
+One flight, tests in file order: bad setpoints while disarmed (sanity), then the simulated PX4's "Ready for
+takeoff!", arm → offboard → take-off → hover → landing test → land, telemetry on the bus, then a second
+take-off and `kill -9` of the controller (failsafe hold within 0.5 s, then land). A twin flight on the direct
+path (its own `neso up`, same scenario and seed) takes off and hovers at the same time as the first take-off, so
 the two hover errors are compared under the same load of the shared machine.
 """
 from __future__ import annotations
@@ -25,7 +25,7 @@ from runtime.launcher import interrupt
 from runtime.probe import Probe
 from runtime.schema import SetpointMsg
 from services.px4_gateway import GatewayConfig
-from tests.busutil import free_port, neso, peer, role_pid, session
+from tests.busutil import free_port, neso, peer, role_pid, session, wait_for
 
 TOPICS = ("state", "truth", "estimate", "setpoint", "reference", "telemetry")
 HOLD = (4.0, 3.0)  # PX4 main/sub mode of AUTO.LOITER in DO_SET_MODE param2/param3
@@ -63,6 +63,10 @@ class Flight:
     def cmd(self, service: str, name: str, **args):
         reply = command(self.s, self.probe.keys, service, name, args, timeout_s=8.0)
         return reply
+
+    def said(self, text: str) -> bool:
+        """Whether a line of the processes' output has ``text`` (the simulated PX4 prints where PX4 SITL does)."""
+        return any(text in line for line in self.output)
 
     def vehicle_log(self) -> list[dict]:
         with open(self.log_path) as f:
@@ -190,6 +194,8 @@ def test_commands_are_answered_with_the_vehicles_acknowledgement(flight):
 
 
 def test_arm_takeoff_hover_landing_test_and_land_through_the_gateway(flight):
+    # as an operator does with PX4: its "Ready for takeoff!" first (external vision settled; on its console)
+    wait_for("the simulated PX4 says it is ready for takeoff", lambda: flight.said("Ready for takeoff"), 30)
     armed = flight.cmd("px4_gateway", "arm")
     assert armed.ok, armed.message
     assert flight.commands(400)[-1]["params"][0] == 1.0
