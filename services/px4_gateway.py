@@ -430,7 +430,7 @@ class Px4Link:
                 reported.set()
 
         direct = self.direct
-        direct.subscribe_message("GPS_GLOBAL_ORIGIN", on_origin)
+        handle = direct.subscribe_message("GPS_GLOBAL_ORIGIN", on_origin)
         fields = {"target_system": system.get_system_id(), "latitude": wanted[0], "longitude": wanted[1],
                   "altitude": round(alt_m * 1e3), "time_usec": 0}
         message = MavlinkMessage("SET_GPS_GLOBAL_ORIGIN", target_system_id=system.get_system_id(),
@@ -443,6 +443,7 @@ class Px4Link:
             except Exception as exc:  # MavlinkDirectError: the link is not up yet; the next try may pass
                 self.node.log(f"SET_GPS_GLOBAL_ORIGIN not sent: {exc}")
             reported.wait(self.config.origin_retry_s)
+        direct.unsubscribe_message(handle)
         if reported.is_set():
             self.node.event("info", f"the vehicle's global origin is set: {lat_deg:.7f}°, {lon_deg:.7f}°, {alt_m:g} m "
                                     f"({sent} SET_GPS_GLOBAL_ORIGIN sent)")

@@ -63,6 +63,13 @@ class Px4Flight(NesoUp):
         wait_for("airborne", lambda: self.probe.get("truth")[-1].pos_enu_m[2] > 0.9, 30)
         time.sleep(2.0)
 
+    def into_lemniscate(self, seconds: float = 8.0) -> None:
+        """Airborne, then the controller's lemniscate flown for ``seconds`` (into the figure eight, at speed)."""
+        self.airborne()
+        assert self.cmd("controller", "lemniscate").ok
+        self.probe.wait_for("reference", lambda m: m.segment == "lemniscate", 15.0)
+        time.sleep(seconds)
+
 
 @contextlib.contextmanager
 def px4_flight(tmp_path_factory, *extra: str):

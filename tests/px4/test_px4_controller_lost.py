@@ -15,10 +15,7 @@ from tests.busutil import role_pid, wait_for
 def test_the_controller_killed_mid_lemniscate_px4_holds_then_lands_and_disarms(flight):
     from recordings.reader import read_recording
 
-    flight.airborne()
-    assert flight.cmd("controller", "lemniscate").ok
-    flight.probe.wait_for("reference", lambda m: m.segment == "lemniscate", 15.0)
-    time.sleep(8.0)  # into the figure eight, at speed
+    flight.into_lemniscate()
     before = len(flight.output)
     killed_s = time.monotonic()
     at = np.array(flight.probe.get("truth")[-1].pos_enu_m)

@@ -38,10 +38,7 @@ def test_the_gateway_killed_mid_lemniscate_px4s_own_failsafe_within_com_of_loss_
     (COM_OF_LOSS_T 0.3 s, then COM_OBL_RC_ACT: Hold, sim/px4/neso_quad.params) within 0.8 s; the vehicle brakes and
     holds where it is. The restarted gateway leaves PX4 in its Hold (it streams no setpoints into a mode of the
     vehicle's own) until the operator's `land`: PX4's own Land, and its land detector disarms."""
-    flight.airborne()
-    assert flight.cmd("controller", "lemniscate").ok
-    flight.probe.wait_for("reference", lambda m: m.segment == "lemniscate", 15.0)
-    time.sleep(8.0)  # into the figure eight, at speed
+    flight.into_lemniscate()
     before = len(flight.output)
     killed = time.monotonic()
     os.kill(role_pid(flight.proc.pid, "px4_gateway"), signal.SIGKILL)
