@@ -289,7 +289,15 @@ class Node:
         return self._stop.is_set()
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        return self._stop.wait(timeout_s)
+        """Until the node stops (True) or ``timeout_s`` passes (False). Without a timeout it still wakes every
+        0.1 s: a SIGINT the kernel hands to one of Zenoh's native threads does not interrupt the main thread's
+        wait, and Python runs the handler only when the main thread wakes (seen as a recorder that ignored
+        Ctrl-C until the launcher's SIGKILL 12 s later)."""
+        if timeout_s is not None:
+            return self._stop.wait(timeout_s)
+        while not self._stop.wait(0.1):
+            pass
+        return True
 
     def close(self) -> None:
         self._stop.set()
