@@ -383,10 +383,10 @@ class Px4Link:
         t["mode"] = tele.flight_mode().name  # MAVSDK calls subscribers on a change only; its mode here is the vehicle's
         threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         if len(self.config.global_origin) == 3:
-            threading.Thread(target=self._set_global_origin, args=(system,), name="px4-origin", daemon=True).start()
+            threading.Thread(target=self._set_global_origin, name="px4-origin", daemon=True).start()
         self.telemetry = tele
         self.system = system
-        self.node.event("info", f"connected to autopilot system {system.get_system_id()} on {self.config.mavlink}")
+        self.node.event("info", f"connected to autopilot system {self.system_id} on {self.config.mavlink}")
 
     def _on_status_text(self, v, _) -> None:
         """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
@@ -412,7 +412,7 @@ class Px4Link:
         self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
-    def _set_global_origin(self, system) -> None:
+    def _set_global_origin(self) -> None:
         """SET_GPS_GLOBAL_ORIGIN (MAVSDK's MavlinkDirect) every ``origin_retry_s`` until the vehicle's
         GPS_GLOBAL_ORIGIN reports it (PX4 answers one after each: mavlink_receiver.cpp; EKF2 takes it in
         setEkfGlobalOrigin, and its global position is then valid whenever its local one is: ekf.h)."""
@@ -431,9 +431,9 @@ class Px4Link:
 
         direct = self.direct
         handle = direct.subscribe_message("GPS_GLOBAL_ORIGIN", on_origin)
-        fields = {"target_system": system.get_system_id(), "latitude": wanted[0], "longitude": wanted[1],
+        fields = {"target_system": self.system_id, "latitude": wanted[0], "longitude": wanted[1],
                   "altitude": round(alt_m * 1e3), "time_usec": 0}
-        message = MavlinkMessage("SET_GPS_GLOBAL_ORIGIN", target_system_id=system.get_system_id(),
+        message = MavlinkMessage("SET_GPS_GLOBAL_ORIGIN", target_system_id=self.system_id,
                                  fields_json=json.dumps(fields))
         sent = 0
         while not reported.is_set() and not self.node.stopping:
