@@ -329,7 +329,7 @@ def run(args) -> int:
               f"the rest on {list(other_cpus)} (--no-isolate: any)", flush=True)
         cpu_list = ",".join(map(str, other_cpus))
         print(f"  a browser here:   taskset -c {cpu_list} chromium ...  keeps it off the loop's CPUs "
-              "(README 'The hot path': what pages on the loop's CPU cost it)", flush=True)
+              "(docs/benchmarks.md 'The hot path': what pages on the loop's CPU cost it)", flush=True)
     if sharing_processes(args):
         print(f"  processes:        one {', one '.join(SHARED_ROLES)} for all {len(vehicles)} vehicles, a source each "
               "(--no-process-per-role: one per vehicle)", flush=True)

@@ -137,7 +137,7 @@ FEATURE_SETS: dict[str, FeatureSet] = {fs.key: fs for fs in (
                "state and the applied thrust through the identified lag [p_z, v_z, T_applied, roll, pitch]"),
 )}
 PAPER_FEATURE_SET = "paper@1"
-#: The default for new networks, chosen by measurement (README "What the simulation shows"): without any
+#: The default for new networks, chosen by measurement (docs/method.md "What the simulation shows"): without any
 #: thrust input it cannot learn the feedback identity at any bound; with the applied thrust and the LMI's
 #: certified bound (1.49 > 1/m) a network did, and the noise-free landing limit-cycled.
 DEFAULT_FEATURE_SET = "state@1"

@@ -35,7 +35,7 @@ LABELS = ("eso", "tdr", "applied")
 #: The pathway a flight must have flown for a label taken from its estimates.
 LABEL_PATHWAYS = {"eso": ("eso",), "tdr": ("neural_eso",), "applied": None}
 #: The zero-phase low-pass under the measured acceleration, Hz. Chosen on simulated flights against the
-#: truth (README "Labels"): 3 Hz on the position beat 2 and 5 Hz and every cutoff on the velocity.
+#: truth (docs/method.md "Labels"): 3 Hz on the position beat 2 and 5 Hz and every cutoff on the velocity.
 SMOOTHING_CUTOFF_HZ = 3.0
 IDENTIFICATION_CUTOFF_HZ = 5.0  # identify_thrust_lag needs the band where the lag shows
 

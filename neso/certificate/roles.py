@@ -29,7 +29,7 @@ come from SDPs (cvxpy + Clarabel, as the ``lmi`` method; imported lazily) and ar
 (:func:`neso.certificate.core.negative_margin`), giving ``V̇ ≤ −αV + μ w²`` and the eventual bound
 ``‖E‖ ≤ C_f sqrt(μ/(α λ_min P))``. The largest ``L_s`` the services use is the largest whose SDP
 certificate verified (bisection below ``1/‖G‖_∞``; within 2e-5 of it on the gain grid of ``neso certify --frontier``). At k_p 10, k_d 6, ω_o 15 it certifies ``L_s`` up to 7.40 against the
-LMI's 1.66 under Lemma 1 (README "Certificate").
+LMI's 1.66 under Lemma 1 (docs/certificate.md).
 """
 from __future__ import annotations
 
