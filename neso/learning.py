@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neso.features import (DEFAULT_FEATURE_SET, PAPER_FEATURE_SET, FeatureSet, FeatureSignals, ThrustLag,
-                           applied_thrust_series)
+                           applied_thrust_series, feature_set)
 from neso.types import GRAVITY_MPS2, VehicleModel
 
 LABELS = ("eso", "tdr", "applied")
@@ -168,8 +168,10 @@ class Recipe:
     the stability certificate allows for the gains flown (physical units only).
     ``tdr_scalers``: ``init`` keeps the base network's z-scores, ``fit`` refits them on the new
     data (:func:`neso.training.train_lipschitz_mlp`). ``certified_fraction``: the physical bound on the state
-    inputs as a fraction of the largest certified (:func:`neso.certificate.flight_budget`);
-    ``exogenous_fraction``: the other inputs' bound as a multiple of it (:func:`recipe_blocks`).
+    inputs as a fraction of the largest certified to fly well (:func:`neso.certificate.flight_budget`, with the
+    other inputs at ``exogenous_fraction`` of it); ``exogenous_fraction``: the other inputs' bound as a
+    multiple of the state inputs' (:func:`recipe_blocks`). Attitude and thrust inputs are in the loop
+    through ``u_z`` and their rates are large (:mod:`neso.certificate.flight`): a small fraction.
     """
 
     name: str
@@ -180,7 +182,7 @@ class Recipe:
     lipschitz_bound: float | None
     tdr_scalers: str
     certified_fraction: float = 0.9
-    exogenous_fraction: float = 1.0
+    exogenous_fraction: float = 0.05
     description: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -209,20 +211,25 @@ def recipe_of(metadata: dict) -> Recipe:
     return RECIPES["paper"] if metadata.get("feature_set", PAPER_FEATURE_SET) == PAPER_FEATURE_SET else RECIPES[DEFAULT_RECIPE]
 
 
-def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float) -> float:
-    """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown."""
+def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float, mass_kg: float = VehicleModel().mass_kg) -> float:
+    """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown on a vehicle
+    of ``mass_kg``."""
     if recipe.lipschitz_bound is not None:
         return recipe.lipschitz_bound
-    from neso.certificate import flight_budget
+    from neso.certificate import LoopPlant, flight_budget
+    from neso.control import ControlConfig
 
-    return recipe.certified_fraction * flight_budget(kp, kd, omega_o)
+    plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=float(mass_kg))))
+    roles = tuple(r for r, cols in feature_set(recipe.feature_set).role_columns.items() if cols and r != "state")
+    return recipe.certified_fraction * flight_budget(kp, kd, omega_o, plant=plant, exogenous_roles=roles,
+                                                     exogenous_fraction=recipe.exogenous_fraction)
 
 
 def recipe_blocks(recipe: Recipe, fset: FeatureSet, bound: float):
     """``(blocks, bounds)`` for :func:`neso.training.train_lipschitz_mlp`: for a physical recipe, the state
-    inputs under ``bound`` (the certificate's loop gain) and the exogenous ones under
-    ``recipe.exogenous_fraction × bound`` (they move only the ultimate bound, :mod:`neso.certificate.roles`);
-    ``(None, None)`` otherwise (one bound on everything)."""
+    inputs under ``bound`` and every other input under ``recipe.exogenous_fraction × bound`` (each of them
+    then stays within the slopes :func:`recipe_bound` certified); ``(None, None)`` otherwise (one bound on
+    everything)."""
     state = fset.state_columns
     exo = tuple(i for i in range(fset.size) if i not in state)
     if recipe.bound_units != "physical" or not state or not exo:

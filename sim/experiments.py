@@ -18,7 +18,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from neso.certificate import flight_budget
+from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
 from neso.control import ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
@@ -68,7 +68,8 @@ class PaperConfig:
 
     def base_bound(self, recipe: Recipe) -> float:
         """The recipe's bound in its units (the certified one for these gains when it asks for it)."""
-        return recipe_bound(recipe, self.control.kp[2], self.control.kd[2], self.omega_o_rps)
+        return recipe_bound(recipe, self.control.kp[2], self.control.kd[2], self.omega_o_rps,
+                            self.control.vehicle.mass_kg)
 
 
 @dataclass(frozen=True)
@@ -177,7 +178,8 @@ def train(z: np.ndarray, y: np.ndarray, *, bound: float, units: str, config: Pap
     return train_lipschitz_mlp(
         z, y, lipschitz_bound=bound, bound_units=units, epochs=config.epochs, seed=config.seed, init=init,
         scalers=scalers, blocks=blocks, block_bounds=block_bounds, metadata={"id": name, "training_data": source, "feature_set": fset_key, "recipe": recipe_name,
-                                   "thrust_lag_s": repr(lag.time_constant_s), "thrust_delay_s": repr(lag.delay_s)},
+                                   "thrust_lag_s": repr(lag.time_constant_s), "thrust_delay_s": repr(lag.delay_s),
+                                   "mass_kg": repr(float(config.control.vehicle.mass_kg))},
     )
 
 
@@ -405,18 +407,20 @@ def _bound_key(value: float) -> str:
 
 def _network_details(result, config: PaperConfig) -> dict:
     net = result.network
-    cert = flight_budget(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
+    cert = flight_certificate(NetworkSlopes.of(net), kp=config.control.kp[2], kd=config.control.kd[2],
+                              omega_o=config.omega_o_rps, plant=LoopPlant.of(config.control))
     return {
         "bound": net.lipschitz_bound,
         "bound_units": net.bound_units,
         "certified_lipschitz_normalised": net.certified_lipschitz_normalised(),
         "certified_lipschitz_physical": net.certified_lipschitz_physical(),
         "certified_lipschitz_state": net.certified_lipschitz_state(),
-        "certificate_holds": net.certified_lipschitz_state() < cert,
+        "certificate_holds": cert.holds,
+        "certificate": cert.to_dict(),
         "val_loss_vs_mean": result.val_loss_vs_mean,
         "slopes": result.slopes,
         "start": net.metadata.get("start", ""),
-        "largest_certified_physical": cert,
+        "largest_certified_physical": cert.max_certified,
         "feature_set": net.feature_set.key,
         "val_loss": result.val_loss,
         "n_train": result.n_train,
