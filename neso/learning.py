@@ -48,7 +48,9 @@ class FlightSeries:
     measured; ``thrust_prev_n`` (N,): the thrust commanded at the sample before (the control that
     acted over the period ending at this sample, N); ``f_hat_mps2`` (N, 3): the estimator's f̂
     (NaN where there was none); ``pathway`` (N,) of str or None; ``mass_kg``: the vehicle's mass the
-    thrust in newtons is for (a recording's, or the controller's nominal model), kg.
+    thrust in newtons is for (a recording's, or the controller's nominal model), kg; ``ref_pos_enu_m``,
+    ``ref_vel_enu_mps`` (N, 3): the reference the controller tracked at each sample (None, or NaN rows,
+    where it is not known: an imported log).
     """
 
     t_s: np.ndarray
@@ -60,6 +62,8 @@ class FlightSeries:
     f_hat_mps2: np.ndarray
     pathway: np.ndarray | None = None
     mass_kg: float = VehicleModel().mass_kg
+    ref_pos_enu_m: np.ndarray | None = None
+    ref_vel_enu_mps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -75,15 +79,34 @@ class FlightSeries:
         """(R e₃)_z = cos φ cos θ (N,)."""
         return np.cos(self.roll_rad) * np.cos(self.pitch_rad)
 
-    def signals(self, lag: ThrustLag) -> FeatureSignals:
+    def signals(self, lag: ThrustLag, regressors: str = "state") -> FeatureSignals:
+        """What the features are built from; with ``regressors="reference"`` the tracked axis' position and
+        velocity are the reference's where it is known (:func:`features`)."""
         applied = applied_thrust_series(self.thrust_prev_n, lag, self.dt_s)
-        return FeatureSignals(self.pos_enu_m, self.vel_enu_mps, self.roll_rad, self.pitch_rad,
-                              self.thrust_prev_n, applied)
+        pos, vel = self.pos_enu_m, self.vel_enu_mps
+        if regressors == "reference" and self.ref_pos_enu_m is not None and self.ref_vel_enu_mps is not None:
+            known = np.all(np.isfinite(self.ref_pos_enu_m), axis=1) & np.all(np.isfinite(self.ref_vel_enu_mps), axis=1)
+            pos, vel = np.array(pos, dtype=float), np.array(vel, dtype=float)
+            pos[known, 2], vel[known, 2] = self.ref_pos_enu_m[known, 2], self.ref_vel_enu_mps[known, 2]
+        return FeatureSignals(pos, vel, self.roll_rad, self.pitch_rad, self.thrust_prev_n, applied)
 
 
-def features(series: FlightSeries, fset: FeatureSet, lag: ThrustLag = ThrustLag()) -> np.ndarray:
-    """z (N, fset.size) for every sample: the inputs the estimator builds in flight."""
-    return fset.build(series.signals(lag))
+#: What a network's tracked-state inputs are trained on. ``state``: the measured position and velocity, as it
+#: flies them; but in closed loop the state answers the disturbance (a push up raises the vehicle until the
+#: observer catches it), so a regression on it finds the loop: positive slopes, extra feedback gain, not
+#: aerodynamics (issue 32). ``reference``: the reference's (z*, ż*), which the disturbance does not move: an
+#: instrument for the state (p_z = z* − e with e the loop's answer); the network still flies on the measured
+#: state, a tracking error (cm) away. Where the reference is not known (an imported log) the state is used.
+REGRESSORS = ("state", "reference")
+
+
+def features(series: FlightSeries, fset: FeatureSet, lag: ThrustLag = ThrustLag(), regressors: str = "state"
+             ) -> np.ndarray:
+    """z (N, fset.size) for every sample: the inputs the estimator builds in flight, or (``regressors``
+    ``"reference"``, :data:`REGRESSORS`) the same with the tracked state taken from the reference."""
+    if regressors not in REGRESSORS:
+        raise ValueError(f"regressors must be one of {REGRESSORS}, got {regressors!r}")
+    return fset.build(series.signals(lag, regressors))
 
 
 def zero_phase(x: np.ndarray, dt_s: float, cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
@@ -183,11 +206,14 @@ class Recipe:
     tdr_scalers: str
     certified_fraction: float = 0.9
     exogenous_fraction: float = 0.05
+    regressors: str = "state"
     description: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         if self.base_label not in LABELS or self.tdr_label not in LABELS:
             raise ValueError(f"labels must be in {LABELS}")
+        if self.regressors not in REGRESSORS:
+            raise ValueError(f"regressors must be one of {REGRESSORS}")
         if self.lipschitz_bound is None and self.bound_units != "physical":
             raise ValueError("a certified bound (lipschitz_bound None) is in physical units")
 
@@ -196,7 +222,8 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
     Recipe("paper", PAPER_FEATURE_SET, "eso", "tdr", "normalised", 1.0, "init", description=
            "the paper as published: [p_z, v_z, T_k-1, roll, pitch], ESO and f_N + Δf̂ labels, L_N = 1 normalised, "
            "TDR keeps the base network's z-scores"),
-    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit", description=
+    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit",
+           description=
            "inputs free of the controller's output, lag-consistent TDR labels, trained to the largest bound the "
            "certificate allows for the gains flown, TDR z-scores refitted"),
 )}

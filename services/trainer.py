@@ -215,7 +215,7 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
         recipe = RECIPES[DEFAULT_RECIPE]
         label, fset = job.label or recipe.base_label, recipe.feature_set
     lag = init.thrust_lag if init is not None and init.feature_set.uses_applied_thrust else None
-    ts = load_training_set(list(job.recordings), label, feature_set_key=fset, lag=lag)
+    ts = load_training_set(list(job.recordings), label, feature_set_key=fset, lag=lag, regressors=recipe.regressors)
     if ts.vehicle and ts.vehicle != vehicle:
         raise ValueError(f"the recordings are of vehicle {ts.vehicle!r}, this trainer serves {vehicle!r}")
     t1 = time.perf_counter()
@@ -233,7 +233,8 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
         init=init, scalers=recipe.tdr_scalers if init is not None else "fit", blocks=blocks, block_bounds=block_bounds,
         metadata={"vehicle": vehicle, "parent": parent, "feature_set": ts.feature_set, "recipe": recipe.name,
                   "label": label, "thrust_lag_s": repr(ts.thrust_lag.time_constant_s),
-                  "thrust_delay_s": repr(ts.thrust_lag.delay_s), "mass_kg": repr(float(ts.mass_kg))})
+                  "thrust_delay_s": repr(ts.thrust_lag.delay_s), "mass_kg": repr(float(ts.mass_kg)),
+                  "regressors": recipe.regressors})
     t2 = time.perf_counter()
     result.timings_s["train"] = t2 - t1
     plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=mass_kg)))

@@ -125,15 +125,16 @@ def _late(series: FlightSeries, skip_s: float) -> np.ndarray:
 
 
 def training_pairs(logs: list[FlightLog], recipe_label: str, fset_key: str, lag: ThrustLag, *,
-                   skip_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """(z (N, n), y (N,)) of flights: the feature set's inputs and the label ``recipe_label``
-    (:func:`neso.learning.labels`), the first ``skip_s`` of each flight left out (observer warm-up)."""
+                   skip_s: float = 0.5, regressors: str = "state") -> tuple[np.ndarray, np.ndarray]:
+    """(z (N, n), y (N,)) of flights: the feature set's inputs (the tracked state from ``regressors``,
+    :data:`neso.learning.REGRESSORS`) and the label ``recipe_label`` (:func:`neso.learning.labels`), the first
+    ``skip_s`` of each flight left out (observer warm-up)."""
     fset = feature_set(fset_key)
     zs, ys = [], []
     for log in logs:
         series = log.series()
         keep = _late(series, skip_s)
-        zs.append(features(series, fset, lag)[keep])
+        zs.append(features(series, fset, lag, regressors)[keep])
         ys.append(labels(series, recipe_label, lag)[keep])
     return np.concatenate(zs), np.concatenate(ys)
 
@@ -291,7 +292,7 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     details: dict = {"recipe": recipe.name, "feature_set": recipe.feature_set, "bound_units": recipe.bound_units,
                      "base_bound": bound, "networks": {}, "settling_time_s": {}}
     fs = recipe.feature_set
-    z_t, y_t = training_pairs(teacher_logs, recipe.base_label, fs, lag)
+    z_t, y_t = training_pairs(teacher_logs, recipe.base_label, fs, lag, regressors=recipe.regressors)
     z_a, y_a = acceleration_dataset(teacher_logs, fs, lag, config.control.dt_s)
     flights.log(f"  training on {len(y_t)} samples: bounds {[round(f * bound, 4) for f in ABLATION_FACTORS]} "
                 f"({recipe.bound_units}), acceleration (PD+NN)")
@@ -344,7 +345,8 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
 def tdr_network(tdr_log: FlightLog, recipe: Recipe, config: PaperConfig, base: dict, lag: ThrustLag, tdr_traj):
     """Total Disturbance Retraining: the recipe's TDR labels of a neural_eso lemniscate flight ``tdr_log``
     (``tdr_traj``, its ramp left out), fine-tuned from ``base["base"]``; the training result."""
-    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, recipe.feature_set, lag, skip_s=tdr_traj.cycle_start_s)
+    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, recipe.feature_set, lag, skip_s=tdr_traj.cycle_start_s,
+                              regressors=recipe.regressors)
     return train(z_r, y_r, bound=config.base_bound(recipe), units=recipe.bound_units, config=config,
                  name=f"{recipe.name}-tdr" if recipe.bound_units == "normalised" else "tdr",
                  fset_key=recipe.feature_set, lag=lag, recipe_name=recipe.name, init=base["base"],
