@@ -7,8 +7,12 @@ from pathlib import Path
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("experiment", help="reproduce the paper's experiments in simulation")
-    p.add_argument("name", choices=["paper", "aero"],
-                   help="paper: Section V; aero: Experiment 3's near-ground aerodynamics audited (sim/README.md)")
+    p.add_argument("name", choices=["paper", "aero", "bias"],
+                   help="paper: Section V; aero: Experiment 3's near-ground aerodynamics audited (sim/README.md); "
+                        "bias: what TDR learns on the measured state, on the reference, on a dithered reference "
+                        "(the closed-loop bias, docs/method.md)")
+    p.add_argument("--kp", type=float, default=None, help="bias: the z gain k_p flown (default the controller's)")
+    p.add_argument("--kd", type=float, default=None, help="bias: the z gain k_d flown (default the controller's)")
     p.add_argument("--trials", type=int, default=5, help="trials (seeds) per method (default 5)")
     p.add_argument("--json", type=Path, help="write the results in the documented JSON shape")
     p.add_argument("--details", type=Path, help="write settling times, network certificates and timings as JSON")
@@ -66,6 +70,8 @@ def run(args) -> int:
         config = replace(config, epochs=args.epochs)
     if args.name == "aero":
         return _run_aero(config, args)
+    if args.name == "bias":
+        return _run_bias(config, args)
     if args.world == "px4":
         return _run_px4(config, args)
     run_ = run_paper(config)
@@ -104,6 +110,18 @@ def _run_aero(config, args) -> int:
     result = run_aero(config)
     print()
     print(format_aero(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"results: {args.json}")
+    return 0
+
+
+def _run_bias(config, args) -> int:
+    from sim.bias_audit import config_for, format_bias, run_bias
+
+    result = run_bias(config_for(args.kp, args.kd, config))
+    print()
+    print(format_bias(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2))
         print(f"results: {args.json}")

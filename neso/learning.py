@@ -222,7 +222,7 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
     Recipe("paper", PAPER_FEATURE_SET, "eso", "tdr", "normalised", 1.0, "init", description=
            "the paper as published: [p_z, v_z, T_k-1, roll, pitch], ESO and f_N + Δf̂ labels, L_N = 1 normalised, "
            "TDR keeps the base network's z-scores"),
-    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit",
+    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit", regressors="reference",
            description=
            "inputs free of the controller's output, lag-consistent TDR labels, trained to the largest bound the "
            "certificate allows for the gains flown, TDR z-scores refitted"),

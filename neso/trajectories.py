@@ -109,4 +109,42 @@ class Lemniscate:
         return Reference(pos_enu_m=pos, vel_enu_mps=vel, acc_enu_mps2=acc)
 
 
+@dataclass(frozen=True, slots=True)
+class Dithered:
+    """``base`` with a small z dither added: a sum of sines of ``amplitude_m`` each at ``frequencies_hz``, faded in
+    over ``fade_s`` (smoothly: its speed and acceleration start at 0). An excitation of the height the
+    disturbance does not cause, for data-collection flights: a regression on the reference then sees the
+    disturbance's dependence on height (issue 32). ``duration_s`` and ``cycle_start_s`` are the base's."""
+
+    base: object
+    amplitude_m: float = 0.04
+    frequencies_hz: tuple[float, ...] = (0.23, 0.61)
+    fade_s: float = 2.0
+
+    @property
+    def duration_s(self) -> float:
+        return self.base.duration_s
+
+    @property
+    def cycle_start_s(self) -> float:
+        return getattr(self.base, "cycle_start_s", 0.0)
+
+    def sample(self, t_s: float) -> Reference:
+        r = self.base.sample(t_s)
+        g, dg, ddg = _smoothstep5(t_s / self.fade_s)
+        dg, ddg = dg / self.fade_s, ddg / self.fade_s ** 2
+        z = dz = ddz = 0.0
+        for f in self.frequencies_hz:
+            w = 2 * math.pi * f
+            s, c = math.sin(w * t_s), math.cos(w * t_s)
+            z += self.amplitude_m * s
+            dz += self.amplitude_m * w * c
+            ddz -= self.amplitude_m * w * w * s
+        pos, vel, acc = r.pos_enu_m.copy(), r.vel_enu_mps.copy(), r.acc_enu_mps2.copy()
+        pos[2] += g * z
+        vel[2] += g * dz + dg * z
+        acc[2] += g * ddz + 2 * dg * dz + ddg * z
+        return Reference(pos_enu_m=pos, vel_enu_mps=vel, acc_enu_mps2=acc, yaw_rad=r.yaw_rad)
+
+
 TRAJECTORIES = {"hover": Hover, "landing": Landing, "lemniscate": Lemniscate}

@@ -47,6 +47,7 @@ class TrainingSet:
     vehicle: str
     mass_kg: float = VehicleModel().mass_kg  # the vehicle's mass the recordings' thrust is for
     lag_source: str = "given"  # how thrust_lag was found
+    regressors: str = "state"  # what the tracked-state inputs came from (neso.learning.REGRESSORS, or why not)
 
     def __len__(self) -> int:
         return len(self.y_mps2)
@@ -265,8 +266,11 @@ def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATU
     y = np.ascontiguousarray(np.concatenate(ys), dtype=float)
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(y))):
         raise RecordingError(f"non-finite values in the training pairs from {paths}")
+    used = regressors
+    if regressors == "reference" and any(len(r.channel("reference")) == 0 for r in recs):
+        used = "state where no reference was recorded (an imported log)"
     return TrainingSet(z=z, y_mps2=y, label=label, feature_set=fset.key, thrust_lag=lag, recordings=tuple(paths),
-                       vehicle=vehicles.pop(), mass_kg=masses.pop(), lag_source=lag_source)
+                       vehicle=vehicles.pop(), mass_kg=masses.pop(), lag_source=lag_source, regressors=used)
 
 
 def _airborne_series(recs: list[Recording]) -> list[FlightSeries]:

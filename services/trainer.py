@@ -234,7 +234,7 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
         metadata={"vehicle": vehicle, "parent": parent, "feature_set": ts.feature_set, "recipe": recipe.name,
                   "label": label, "thrust_lag_s": repr(ts.thrust_lag.time_constant_s),
                   "thrust_delay_s": repr(ts.thrust_lag.delay_s), "mass_kg": repr(float(ts.mass_kg)),
-                  "regressors": recipe.regressors})
+                  "regressors": ts.regressors})
     t2 = time.perf_counter()
     result.timings_s["train"] = t2 - t1
     plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=mass_kg)))

@@ -836,6 +836,22 @@ class QuadrotorSim:
             self._advance(n_end - n)
 
 
+def z_disturbance_slopes(config: SimConfig, height_m: float, *, dh_m: float = 1e-4) -> tuple[float, float]:
+    """The world's own slopes of the z disturbance at a level hover ``height_m`` over flat ground:
+    ``(∂f/∂p_z in 1/s², ∂f/∂v_z in 1/s)``. Height: the ground effect's ratio r(h) on the thrust that holds the
+    vehicle (T = m g / r), so ``∂f/∂h = r'(h) g / r`` (central difference); vertical speed: the rotor drag's
+    mass-normalised z coefficient (the slope of ``−d_z v_z``; thrust-scaled drag is at hover here). What a
+    network that learned the disturbance's physics would have for slopes (issue 32's table)."""
+    p = config.params
+
+    def ratio(h: float) -> float:
+        return config.ground_effect.thrust_ratio(h, p.rotor_radius_m, p.arm_length_m)
+
+    r = ratio(height_m)
+    dr = (ratio(height_m + dh_m) - ratio(height_m - dh_m)) / (2 * dh_m)
+    return dr * GRAVITY_MPS2 / r, -p.drag_coeff_per_s[2]
+
+
 def sim_speed_x_real_time(duration_s: float = 20.0, *, config: SimConfig | None = None, seed: int = 0) -> float:
     """Multiple of real time of a hover of ``duration_s`` (default config: 500 Hz physics,
     exponential ground effect, mild gusts, noisy mocap), held at the true hover command."""

@@ -477,3 +477,20 @@ def test_cli_as_subprocess():
     assert out["holds"] is False and out["ultimate_bound"] is None
     assert out["max_certified_lipschitz"] == pytest.approx(certify_literal(inputs(lip=0.05)).max_certified_lipschitz,
                                                            rel=1e-9)
+
+
+def test_cli_refuses_the_paper_network_whose_thrust_input_closes_the_loop(capsys):
+    """Issue 29: `neso certify --network networks/paper/base-L2.safetensors` printed "verdict (roles): HOLDS" and
+    exited 0 beside a margin of −21.5 (state slope 5.74 < 7.40 while its T_{k-1} slope, 1.18 (m/s²)/N, was above
+    1/m). Now: exit 1, its loop gain stated, one margin, the |e_z| bound in cm for the default network."""
+    certify, args = _parse(["--network", str(REPO / "networks" / "paper" / "base-L2.safetensors"), "--json"])
+    assert certify.run(args) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out["holds"] is False and out["parts"]["loop_gain"] > 1.0 and out["margin"] < 0
+    assert any("loop gain" in r for r in out["reasons"])
+    certify, args = _parse(["--network", "default", "--json"])
+    assert certify.run(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["holds"] is True and out["margin"] == pytest.approx(out["max_certified_lipschitz"] - out["parts"]["state"])
+    assert 0 < out["pdeso_bound_cm"] < out["bound_cm"] <= out["max_bound_ratio"] * out["pdeso_bound_cm"]
+    assert out["hover_bound_cm"] <= out["bound_cm"]
