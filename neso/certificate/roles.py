@@ -308,18 +308,13 @@ def role_lmi(m: LoopMatrices, ls: float, lu: float, cert: _Cert) -> tuple[np.nda
     err_top = np.abs(m.a).T @ np.abs(p) + np.abs(p) @ np.abs(m.a) + abs(cert.alpha) * np.abs(p)
     cols: list[tuple[np.ndarray, float]] = []
     errs = []
-    if ls > 0.0:
-        cc = ls ** 2 * (m.c_state.T @ m.c_state)
-        top = top + cert.tau_s * cc
-        err_top = err_top + cert.tau_s * np.abs(cc)
-        cols.append((p @ m.b, -cert.tau_s))
-        errs.append(np.abs(p) @ np.abs(m.b))
-    if lu > 0.0:
-        cu = lu ** 2 * (m.c_thrust.T @ m.c_thrust)
-        top = top + cert.tau_u * cu
-        err_top = err_top + cert.tau_u * np.abs(cu)
-        cols.append((p @ m.b, -cert.tau_u))
-        errs.append(np.abs(p) @ np.abs(m.b))
+    for gain, c, tau in ((ls, m.c_state, cert.tau_s), (lu, m.c_thrust, cert.tau_u)):
+        if gain > 0.0:  # the channel's S-procedure term and its input column
+            cc = gain ** 2 * (c.T @ c)
+            top = top + tau * cc
+            err_top = err_top + tau * np.abs(cc)
+            cols.append((p @ m.b, -tau))
+            errs.append(np.abs(p) @ np.abs(m.b))
     if cert.mu is not None:
         cols.append((p @ m.b, -cert.mu))
         errs.append(np.abs(p) @ np.abs(m.b))
