@@ -55,12 +55,13 @@ class TrainingSet:
 
 @dataclass(frozen=True)
 class Selection:
-    """What one recording gave: the pairs kept and how many samples each rule dropped."""
+    """What one recording gave: the pairs kept, how many samples each rule dropped, and the kept pairs' ``seq``."""
 
     z: np.ndarray
     y_mps2: np.ndarray
     estimates: int
     dropped: dict[str, int]
+    seq: np.ndarray | None = None  # (N,) the state sample of each kept pair
 
 
 def _last_by_seq(seqs: np.ndarray) -> np.ndarray:
@@ -205,7 +206,7 @@ def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip
     dropped = {why: int(np.sum(~ok_warm)),
                f"pathway not {'/'.join(needs or ())}": int(np.sum(ok_warm & ~ok_pathway)),
                "on the ground": int(np.sum(ok_warm & ok_pathway & extra["on_ground"]))}
-    return Selection(z[keep], y[keep], len(seq), dropped)
+    return Selection(z[keep], y[keep], len(seq), dropped, seq[keep])
 
 
 def _offline_teacher(rec: Recording, series: FlightSeries, seq: np.ndarray, extra: dict, skip_s: float,

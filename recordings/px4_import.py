@@ -85,15 +85,19 @@ def flight_messages(flight: PX4Flight, vehicle: str) -> list[tuple[str, object]]
     return out
 
 
-def write_flight(flight: PX4Flight, path: str | Path, *, vehicle: str, flight_id: str) -> Path:
-    """Write ``flight`` to ``path`` through a temporary file beside it (nothing is left on failure)."""
+def write_flight(flight, path: str | Path, *, vehicle: str, flight_id: str, messages=None, source: str | None = None
+                 ) -> Path:
+    """Write ``flight`` (its ``info`` is the ``import`` property) to ``path`` through a temporary file beside it
+    (nothing is left on failure). ``messages``: (channel, message) in time order (default: a PX4 flight's,
+    :func:`flight_messages`); ``source``: the summary's words for where it came from (default: the PX4 log)."""
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.importing.rrd")
     try:
         writer = FlightWriter(tmp, vehicle=vehicle, flight=flight_id, properties={"import": flight.info})
-        for channel, msg in flight_messages(flight, vehicle):
+        for channel, msg in (flight_messages(flight, vehicle) if messages is None else messages):
             writer.add(channel, msg)
-        writer.set_properties({"summary": {"end_reason": "imported", "source": f"PX4 log {flight.info['file_name']}",
+        writer.set_properties({"summary": {"end_reason": "imported",
+                                           "source": source or f"PX4 log {flight.info['file_name']}",
                                            "messages": writer.stats.messages}})
         writer.close()
         os.replace(tmp, path)

@@ -57,7 +57,8 @@ ROOT = "neso"
 MAX_PAYLOAD_BYTES = 1 << 20
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
-ESTIMATE_SOURCES = ("estimator", "local_eso", "px4")  # px4: PX4's own controller (a flight imported from its log)
+# px4: PX4's own controller (a flight imported from its log); crazyflie: the Crazyflie's own (a NanoBench flight)
+ESTIMATE_SOURCES = ("estimator", "local_eso", "px4", "crazyflie")
 STATE_SOURCES = ("sim", "mocap", "replay", "px4")  # px4: PX4's own estimate (EKF2), imported from its log
 EVENT_LEVELS = ("info", "warning", "error")
 LIMIT_M = 1.0e4  # positions and distances beyond this are not a vehicle in a room
@@ -353,7 +354,8 @@ class SetpointMsg(Message):
     """The attitude setpoint answering state ``seq`` (ENU/FLU, ZYX Euler, rad), with what the
     estimator must be told acted over the next period: the nominal acceleration it produces
     (m/s²) and the commanded thrust (N). ``estimate_source`` says which f̂ the controller used
-    (``px4``: none of ours, PX4's own controller commanded it: a flight imported from its log).
+    (``px4``: none of ours, PX4's own controller commanded it: a flight imported from its log; ``crazyflie``:
+    the Crazyflie firmware's own, a NanoBench flight imported from its CSV).
     ``state_stamp_s`` echoes the state's ``stamp_s`` (end-to-end latency); ``estimate_stamp_s``
     the used estimate's ``stamp_s`` (0: none, the local ESO flew), so a late setpoint tells
     which process took the time."""
