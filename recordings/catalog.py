@@ -24,7 +24,7 @@ class Entry:
     size_bytes: int
     closed: str  # why the segment ended ("" if the recorder died while writing it)
     error: str = ""  # why the file could not be read ("" if it could)
-    source: str = ""  # where the states came from: sim, mocap, or the PX4 log imported (version, hardware)
+    source: str = ""  # where the states came from: sim, mocap, or the PX4 log / NanoBench CSV imported
 
 
 def _in_order(values) -> tuple:
@@ -38,6 +38,8 @@ def _in_order(values) -> tuple:
 def source_of(rec, vehicle: str) -> str:
     """Where a recording's states came from, in a few words."""
     imported = rec.properties.get("import")
+    if isinstance(imported, dict) and imported.get("format") == "NanoBench CSV":
+        return f"NanoBench {imported.get('file_name', '?')} ({imported.get('hardware', '?')}, Vicon)"
     if isinstance(imported, dict):
         version = str(imported.get("px4_version", "?")).split(" ")[0]
         return f"PX4 log {imported.get('file_name', '?')} ({version}, {imported.get('hardware', '?')})"

@@ -65,8 +65,12 @@ def restamped(msg: Message, now_s: float) -> Message:
 
 
 def origin_of(rec: Recording) -> str:
-    """What a recording records, in a line: a PX4 log imported (file, version, hardware) or a flight of this system."""
+    """What a recording records, in a line: a PX4 log or NanoBench flight imported (file, version, hardware) or a
+    flight of this system."""
     imported = rec.properties.get("import")
+    if isinstance(imported, dict) and imported.get("format") == "NanoBench CSV":
+        return (f"NanoBench flight {imported.get('file_name', '?')} · {imported.get('hardware', '?')} firmware "
+                f"{imported.get('firmware', '?')} · Vicon")
     if isinstance(imported, dict):
         return (f"PX4 log {imported.get('file_name', '?')} · PX4 {str(imported.get('px4_version', '?')).split(' ')[0]} · "
                 f"{imported.get('hardware', '?')}" + (" · mass assumed" if imported.get("mass_assumed") else ""))
