@@ -1,5 +1,5 @@
 """``neso recordings``: the flight catalog, repairing a file cut short, what a file gives as training
-data, importing a PX4 log, and exporting a recording as MCAP."""
+data, importing a PX4 log or NanoBench CSVs, and exporting a recording as MCAP."""
 from __future__ import annotations
 
 IMPORT_DIR = "out/imports"
@@ -22,20 +22,25 @@ def add_parser(subparsers) -> None:
     ds.add_argument("--features", default=None, help="feature set of the inputs (default: the default network's, "
                                                      "applied@1; paper@1 for the paper's)")
     ds.add_argument("--skip", type=float, default=0.5, help="seconds of estimator warm-up skipped")
-    im = sub.add_parser("import", help="a PX4 flight log (.ulg) as a recording (state, thrust, status, PX4's messages)")
+    im = sub.add_parser("import", help="PX4 flight logs (.ulg) or NanoBench Crazyflie flights (.csv, .csv.gz, .csv.xz) "
+                                       "as recordings (state, thrust, status)")
     add_import_arguments(im)
-    im.add_argument("file", help="a PX4 ULog file")
+    im.add_argument("files", nargs="+", metavar="FILE", help="PX4 ULog files or NanoBench CSVs (by their suffix)")
     im.add_argument("--vehicle", default="uav1", help="vehicle name the flight is recorded under (default uav1)")
-    im.add_argument("--out", default=IMPORT_DIR, help=f"folder, or a .rrd path (default {IMPORT_DIR}/<log name>.rrd)")
+    im.add_argument("--out", default=IMPORT_DIR, help=f"folder, or a .rrd path for one file (default {IMPORT_DIR}/<name>.rrd)")
     ex = sub.add_parser("export", help="a recording as MCAP (JSON messages, JSON Schemas) for Foxglove and PlotJuggler")
     ex.add_argument("file", help="an .rrd recording")
     ex.add_argument("--mcap", required=True, metavar="OUT.mcap", help="the MCAP file to write")
 
 
 def add_import_arguments(parser) -> None:
-    """The options of a PX4 log import (shared with ``neso train FILE.ulg``)."""
+    """The options of a PX4 log or NanoBench import (shared with ``neso train FILE.ulg|FILE.csv``)."""
     parser.add_argument("--mass-kg", type=float, default=None,
-                        help="vehicle mass for thrust in N (default: the nominal model's 1 kg, flagged as assumed)")
+                        help="vehicle mass for thrust in N (default: PX4 the nominal model's 1 kg, flagged as assumed; "
+                             "NanoBench the Crazyflie 2.1's 0.029 kg, the firmware's CF_MASS)")
+    parser.add_argument("--thrust-scale", type=float, default=None,
+                        help="NanoBench: the thrust as this multiple of the firmware's curve (default: the median of "
+                             "the imported flights' own fits)")
     parser.add_argument("--hover-thrust", type=float, default=None,
                         help="normalised hover thrust (default: hover_thrust_estimate, else MPC_THR_HOVER, else steady hover)")
     parser.add_argument("--thrust-source", default=None,
@@ -48,6 +53,53 @@ def import_config(args, vehicle: str):
 
     return ImportConfig(vehicle=vehicle, mass_kg=args.mass_kg, hover_thrust_norm=args.hover_thrust,
                         thrust_source=args.thrust_source)
+
+
+def nanobench_config(args, vehicle: str):
+    from recordings.nanobench import NanoBenchConfig
+
+    given = {"mass_kg": args.mass_kg, "thrust_scale": args.thrust_scale}
+    return NanoBenchConfig(vehicle=vehicle, **{k: v for k, v in given.items() if v is not None})
+
+
+def import_files(paths: list[str], out: str, args, vehicle: str) -> tuple[dict[str, str], list[str]]:
+    """({file: recording written}, one-line refusals) for the PX4 logs (.ulg) and NanoBench CSVs (one import: one
+    thrust scale) among ``paths``, dispatched by suffix; each import's report is printed as it goes, the refusals
+    are the caller's to print."""
+    from pathlib import Path
+
+    from recordings.nanobench import import_nanobench, is_nanobench_csv
+    from recordings.px4 import ImportRefused
+    from recordings.px4_import import import_px4_log
+
+    unknown = [p for p in paths if not (p.lower().endswith(".ulg") or is_nanobench_csv(p))]
+    if unknown:
+        raise ValueError(f"{unknown[0]}: neither a PX4 log (.ulg) nor a NanoBench CSV (.csv, .csv.gz, .csv.xz)")
+    csvs = [p for p in paths if is_nanobench_csv(p)]
+    if csvs and (args.hover_thrust is not None or args.thrust_source is not None):
+        raise ValueError("--hover-thrust and --thrust-source are for PX4 logs; a NanoBench thrust takes --thrust-scale")
+    if len(paths) > 1 and out.endswith(".rrd"):
+        raise ValueError(f"--out {out}: one .rrd path for {len(paths)} files; give a folder")
+    written: dict[str, str] = {}
+    refused: list[str] = []
+    for path in (p for p in paths if p.lower().endswith(".ulg")):
+        try:
+            result = import_px4_log(path, out, import_config(args, vehicle))
+        except ImportRefused as exc:
+            refused.append(str(exc))
+            continue
+        print(result.report(), flush=True)
+        written[path] = str(result.path)
+    if csvs:
+        run = import_nanobench(csvs, out, nanobench_config(args, vehicle))
+        by_file = {r.flight.info["file"]: r for r in run.imported}
+        for path in csvs:
+            if str(Path(path).resolve()) in by_file:
+                result = by_file[str(Path(path).resolve())]
+                print(result.report(), flush=True)
+                written[path] = str(result.path)
+        refused += [why for _, why in run.refused]
+    return written, refused
 
 
 def run(args) -> int:
@@ -72,10 +124,10 @@ def run(args) -> int:
                 print(f"{f}: {'verified' if ok else 'STILL FAILS verify: ' + out}")
             return 0
         if args.action == "import":
-            from recordings.px4_import import import_px4_log
-
-            print(import_px4_log(args.file, args.out, import_config(args, args.vehicle)).report())
-            return 0
+            refused = import_files(args.files, args.out, args, args.vehicle)[1]
+            for why in refused:
+                print(f"error: {why}")
+            return 1 if refused else 0
         if args.action == "export":
             from recordings.mcap_export import export_mcap
 

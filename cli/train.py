@@ -1,11 +1,11 @@
 """``neso train``: train a network on recordings — through a vehicle's trainer, or here, offline.
 
-    neso train [FILE.rrd|FILE.ulg ...] [--base] [--label eso|tdr|applied] [--lipschitz L_N] [--epochs N]
+    neso train [FILE.rrd|FILE.ulg|FILE.csv ...] [--base] [--label eso|tdr|applied] [--lipschitz L_N] [--epochs N]
                [--no-offer] [--force-offer] [--promote [--force]]
     neso train FILE.rrd|FILE.ulg --no-offer [--offline] [--network FILE] [--registry DIR]
 
-A PX4 log (``.ulg``) is imported first (``neso recordings import``, into ``--import-dir``, under
-``--vehicle``) and the recording it becomes is trained on. With a trainer on the bus: sends
+A PX4 log (``.ulg``) or a NanoBench CSV is imported first (``neso recordings import``, into ``--import-dir``,
+under ``--vehicle``) and the recording it becomes is trained on. With a trainer on the bus: sends
 ``train`` to ``neso/<v>/cmd/trainer`` and waits for that job's ``done``/``failed`` event; with
 ``--promote`` (after a passed offer and ``--shadow`` seconds in shadow) sends ``promote`` to the
 estimator. With ``--offline``, or ``--no-offer`` and no trainer on the bus: the trainer's own job
@@ -22,7 +22,7 @@ import time
 import uuid
 
 from cli.busargs import add_bus_arguments, bus_from_args
-from cli.recordings import IMPORT_DIR, add_import_arguments, import_config
+from cli.recordings import IMPORT_DIR, add_import_arguments, import_files
 
 
 def add_parser(subparsers) -> None:
@@ -30,7 +30,7 @@ def add_parser(subparsers) -> None:
     from services.registry import DEFAULT_ROOT
 
     p = subparsers.add_parser("train", help="train a network on recordings (trainer service), offer it, promote it")
-    p.add_argument("recordings", nargs="*", help=".rrd files or PX4 logs (.ulg, imported first) "
+    p.add_argument("recordings", nargs="*", help=".rrd files, PX4 logs (.ulg) or NanoBench CSVs (imported first) "
                                                  "(default: the trainer's newest recording)")
     p.add_argument("--base", action="store_const", const="base", default="tdr", dest="train_mode",
                    help="train a base network from scratch on ESO-teacher flights (default recipe) instead of "
@@ -62,17 +62,18 @@ def add_parser(subparsers) -> None:
 
 
 def imported(paths: list[str], args) -> list[str]:
-    """``paths`` with every PX4 log (``.ulg``) replaced by the recording it was imported as."""
-    from recordings.px4_import import import_px4_log
+    """``paths`` with every PX4 log (``.ulg``) and NanoBench CSV replaced by the recording it was imported as
+    (:class:`recordings.reader.RecordingError` naming the first one refused)."""
+    from recordings.nanobench import is_nanobench_csv
+    from recordings.reader import RecordingError
 
-    out = []
-    for path in paths:
-        if path.lower().endswith(".ulg"):
-            result = import_px4_log(path, args.import_dir, import_config(args, args.vehicle))
-            print(result.report(), flush=True)
-            path = str(result.path)
-        out.append(path)
-    return out
+    logs = [p for p in paths if p.lower().endswith(".ulg") or is_nanobench_csv(p)]
+    if not logs:
+        return list(paths)
+    written, refused = import_files(logs, args.import_dir, args, args.vehicle)
+    if refused:
+        raise RecordingError(refused[0])
+    return [written.get(p, p) for p in paths]
 
 
 def _train_args(args) -> dict:
