@@ -27,8 +27,12 @@ Then the dashboard's cost to the loop and bus → DOM latency (:mod:`bench.dashb
 Then importing PX4 logs: the shared CubeOrange log and a 20-minute log (:mod:`bench.px4_import`, ~40 s).
 Then the stability certificates: max certified L_N of each method over a gain grid, the cost of
 ``best_certificate`` cold and cached, and each bound against a simulated worst case (:mod:`bench.certificate`, ~1 min).
+Then the real-flight benchmark (:mod:`bench.nanobench`, ~2 min; ~1 min ``--quick`` at 30 epochs): NanoBench Crazyflie
+flights shipped in ``tests/data/nanobench/`` — the z residual's R² on held-out flights of the certified recipe, the
+paper recipe, the best linear map in the bound and the mean, the learned slopes near the ground, and the neural ESO's
+composite estimate against the ESO alone, replayed (``"nanobench"`` in ``out/bench.json``).
 Pass ``--quick`` (``make bench-quick``) for a subset a user runs in under 5 minutes: the core rows without the
-paper pipeline, the bus latency, the gateway, PX4 SITL in the loop, NatNet, PX4 log import and the certificates,
+paper pipeline, the bus latency, the gateway, PX4 SITL in the loop, NatNet, PX4 log import, the certificates and NanoBench,
 each shortened; the rest is listed as not run. Every run ends with a table of each section's wall time
 (``"section_wall_s"`` in ``out/bench.json``).
 
@@ -186,6 +190,12 @@ def certificate_section(quick: bool) -> None:
     print_tables(print_table)
 
 
+def nanobench_section(quick: bool) -> None:
+    from bench.nanobench import nanobench_rows
+
+    nanobench_rows(quick, print_table)
+
+
 # (name, what it measures, in --quick) in the order they run
 SECTIONS = (
     ("core", core_section, True),
@@ -200,6 +210,7 @@ SECTIONS = (
     ("dashboard", dashboard_section, False),
     ("PX4 log import", px4_import_section, True),
     ("certificates", certificate_section, True),
+    ("NanoBench real flights", nanobench_section, True),
 )
 
 
