@@ -19,6 +19,8 @@ samples.
   With each, the mean slopes ∂f/∂p_z and ∂f/∂v_z over the held-out samples below ``near_ground_m``: ground effect
   makes thrust grow near the floor, so the residual falls with height there (∂f/∂p_z < 0), and drag opposes motion
   (∂f/∂v_z ≤ 0). The first row is the residual's own least-squares slope on p_z over the same samples.
+- **By height**: the held-out residual's mean and each predictor's in bands of height above the rest height: the
+  shape of the near-ground disturbance and how much of it each learned.
 - **Estimate** (the observer replayed): the ESO alone and the neural ESO's composite f_N + Δf̂ with each network, run
   by ``neso replay --what-if pathway=neural_eso,network=…`` (:func:`recordings.replay.what_if`) over each held-out
   recording: RMS error and R² against the z residual, and the lag (the shift of the estimate that correlates best
@@ -44,6 +46,7 @@ SUBSET = Path(__file__).resolve().parents[1] / "tests" / "data" / "nanobench"
 FIT_COLUMNS = ("z residual, held-out NanoBench flights", "R²", "R² within flights", "RMS m/s²", "∂f/∂p_z < 10 cm",
                "∂f/∂v_z < 10 cm")
 ESTIMATE_COLUMNS = ("f̂ z against the residual (replayed)", "RMS error m/s²", "R²", "lag ms")
+HEIGHT_BANDS_M = ((0.005, 0.02), (0.02, 0.05), (0.05, 0.10), (0.10, 0.30), (0.30, math.inf))
 VEHICLE = "uav1"
 RESIDUAL = "the residual itself (least squares on p_z)"
 CERTIFIED = "(a) certified recipe (neso train --base)"
@@ -237,6 +240,13 @@ def benchmark(train_files, heldout_files, workdir: str | Path, config: BenchConf
         fit[name] = {"r2": r_squared(y, pred), "r2_within": r2_within(y, pred, flight), "rms_mps2": rms(y - pred),
                      "slope_pz": mean_slope(predict, zz[near], fs.columns.index("pos_z_m")),
                      "slope_vz": mean_slope(predict, zz[near], fs.columns.index("vel_z_mps"))}
+    by_height = []  # the residual's shape: its mean and each predictor's, per band of height above the rest height
+    for lo, hi in HEIGHT_BANDS_M:
+        band = (z[:, pz] >= lo) & (z[:, pz] < hi)
+        by_height.append({"band_m": [lo, hi], "samples": int(band.sum()),
+                          "mean_mps2": {RESIDUAL: float(np.mean(y[band])) if band.any() else nan,
+                                        **{name: float(np.mean(predict(zz[band]))) if band.any() else nan
+                                           for name, (predict, zz, _) in candidates.items() if name != MEAN}}})
     timings["evaluate fit"] = time.perf_counter() - t
 
     # the observer replayed over each held-out recording: the ESO alone and the composite with each network
@@ -268,7 +278,8 @@ def benchmark(train_files, heldout_files, workdir: str | Path, config: BenchConf
                  "near_ground_m": config.near_ground_m,
                  "thrust_lag_s": {"time_constant": lag.time_constant_s, "delay": lag.delay_s}},
         "gains": {"kp": kp, "kd": kd, "omega_o_rps": omega_o, "state_bound_phys": bound, "trained": train_info},
-        "epochs": config.epochs, "seed": config.seed, "fit": fit, "estimate": estimate, "timings_s": timings,
+        "epochs": config.epochs, "seed": config.seed, "fit": fit, "by_height": by_height, "estimate": estimate,
+        "timings_s": timings,
     }
 
 
@@ -276,13 +287,24 @@ def _fmt(v, spec: str) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
 
 
-def table_rows(figures: dict) -> tuple[list[tuple[str, ...]], list[tuple[str, ...]]]:
-    """(fit rows, estimate rows) for :data:`FIT_COLUMNS` and :data:`ESTIMATE_COLUMNS`."""
+def _band(lo: float, hi: float) -> str:
+    return f"{lo * 100:g}–{hi * 100:g} cm" if math.isfinite(hi) else f"above {lo * 100:g} cm"
+
+
+def table_rows(figures: dict) -> tuple[list[tuple[str, ...]], list[tuple[str, ...]], tuple[str, ...],
+                                       list[tuple[str, ...]]]:
+    """(fit rows, estimate rows, by-height columns, by-height rows); the first two for :data:`FIT_COLUMNS` and
+    :data:`ESTIMATE_COLUMNS`."""
     fit = [(name, _fmt(f["r2"], ".3f"), _fmt(f["r2_within"], ".3f"), _fmt(f["rms_mps2"], ".3f"),
             _fmt(f["slope_pz"], "+.2f"), _fmt(f["slope_vz"], "+.2f")) for name, f in figures["fit"].items()]
     est = [(name, _fmt(e["rms_mps2"], ".3f"), _fmt(e["r2"], ".3f"), f"{e['lag_s'] * 1e3:.0f}")
            for name, e in figures["estimate"].items()]
-    return fit, est
+    names = list(figures["by_height"][0]["mean_mps2"])
+    columns = ("mean z residual m/s², held-out, by height", "samples",
+               *(n.split(" ")[0] if n != RESIDUAL else "residual" for n in names))
+    height = [(_band(*b["band_m"]), str(b["samples"]), *(_fmt(b["mean_mps2"][n], "+.2f") for n in names))
+              for b in figures["by_height"]]
+    return fit, est, columns, height
 
 
 def summary(figures: dict) -> str:
@@ -305,9 +327,11 @@ def nanobench_rows(quick: bool = False, print_table=None, *, dataset: str | None
     train, held = subset_files() if dataset is None else dataset_split(dataset)
     with tempfile.TemporaryDirectory(prefix="neso-bench-nanobench-") as tmp:
         figures = benchmark(train, held, tmp, BenchConfig(epochs=epochs or (30 if quick else 100)))
-    fit, est = table_rows(figures)
+    fit, est, height_columns, height = table_rows(figures)
     print(summary(figures), flush=True)
     print_table(FIT_COLUMNS, fit)
+    print(flush=True)
+    print_table(height_columns, height)
     print(flush=True)
     print_table(ESTIMATE_COLUMNS, est)
     write_results({key: figures})
