@@ -84,19 +84,23 @@ def subset_files(subset: Path = SUBSET) -> tuple[list[Path], list[Path]]:
     return pick("train"), pick("heldout")
 
 
-def dataset_split(folder: str | Path, every: int = 4) -> tuple[list[Path], list[Path]]:
-    """(training, held-out) CSVs of a whole NanoBench ``datasets/dataset`` folder: byte-identical copies dropped first
-    (the first name of each kept, so a copy never lands on the other side), the rest sorted by name and every
-    ``every``-th from the second held out."""
+def dataset_split(folder: str | Path, every: int = 4) -> tuple[list[Path], list[Path], list[tuple[Path, Path]]]:
+    """(training, held-out, (copy, original) pairs) of a whole NanoBench ``datasets/dataset`` folder's CSVs:
+    byte-identical copies dropped first (the first name of each kept, so a copy never lands on the other side), the
+    rest sorted by name and every ``every``-th from the second held out."""
     import hashlib
 
     from recordings.nanobench import is_nanobench_csv
 
     unique: dict[str, Path] = {}
+    copies = []
     for path in sorted(p for p in Path(folder).iterdir() if is_nanobench_csv(p)):
-        unique.setdefault(hashlib.sha256(path.read_bytes()).hexdigest(), path)
+        first = unique.setdefault(hashlib.sha256(path.read_bytes()).hexdigest(), path)
+        if first != path:
+            copies.append((path, first))
     files = sorted(unique.values())
-    return ([p for i, p in enumerate(files) if i % every != 1], [p for i, p in enumerate(files) if i % every == 1])
+    return ([p for i, p in enumerate(files) if i % every != 1], [p for i, p in enumerate(files) if i % every == 1],
+            copies)
 
 
 def r2_within(y: np.ndarray, pred: np.ndarray, flight: np.ndarray) -> float:
@@ -324,7 +328,9 @@ def nanobench_rows(quick: bool = False, print_table=None, *, dataset: str | None
     from bench.table import print_table as default_print, write_results
 
     print_table = print_table or default_print
-    train, held = subset_files() if dataset is None else dataset_split(dataset)
+    train, held, copies = (*subset_files(), []) if dataset is None else dataset_split(dataset)
+    for copy, original in copies:
+        print(f"left out: {copy}: byte-identical to {original}")
     with tempfile.TemporaryDirectory(prefix="neso-bench-nanobench-") as tmp:
         figures = benchmark(train, held, tmp, BenchConfig(epochs=epochs or (30 if quick else 100)))
     fit, est, height_columns, height = table_rows(figures)
