@@ -49,7 +49,7 @@ label must not reach across it. ``seq`` is the CSV's row, so a stretch's first s
 the row before it (the thrust over the period ending at that sample) is written too.
 
 **Refused** (one line, nothing written): not a readable CSV, a required column missing, times not increasing,
-values not finite, motor ratios outside 0–65535 or the battery outside 2–4.5 V (the dataset extrapolates its
+values not finite, a quaternion that is no rotation, motor ratios outside 0–65535 or the battery outside 2–4.5 V (the dataset extrapolates its
 onboard columns past the end of the onboard log: some files do), never flown (motors never on, or never
 ``never_flown_height_m`` above the rest), too little flight above ``fit_height_m`` to fit, the thrust and the
 acceleration inconsistent (residual RMS above ``max_residual_rms_mps2`` at the best scale and lead, or the best
@@ -323,7 +323,13 @@ def nanobench_flight(path: str | Path, config: NanoBenchConfig = NanoBenchConfig
     if np.max(height[on]) < config.never_flown_height_m:
         raise ImportRefused(f"{path}: never flew: {np.max(height[on]) * 100:.1f} cm at most above its rest height "
                             f"(the motors ran {on.sum() * dt:.1f} s)")
-    attitude = euler_zyx_from_quat_xyzw(np.stack([col[c] for c in QUATERNION_XYZW], axis=1))
+    quat = np.stack([col[c] for c in QUATERNION_XYZW], axis=1)
+    norm = np.linalg.norm(quat, axis=1)
+    if np.any(norm < 0.5):
+        k = int(np.flatnonzero(norm < 0.5)[0])
+        raise ImportRefused(f"{path}: {int(np.sum(norm < 0.5))} attitudes are no rotation (quaternion norm "
+                            f"{norm[k]:.3g} at t = {t[k]:.2f} s)")
+    attitude = euler_zyx_from_quat_xyzw(quat)
     tilt_cos = np.cos(attitude[:, 0]) * np.cos(attitude[:, 1])
     curve_raw = CRAZYFLIE_21_PLUS.thrust_n(ratios / RATIO_MAX * battery[:, None]).sum(axis=1)
     kept, touches, short = _airborne(on, height, dt, config)

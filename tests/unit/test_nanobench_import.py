@@ -1,6 +1,6 @@
 """NanoBench CSVs (the real Crazyflie flights shipped in tests/data/nanobench) → recordings: frames, heights, the
 firmware's thrust curve, the motor lead, one thrust scale per import, the stretches written, and the refusals
-(never flown, extrapolated onboard columns, a byte-identical copy, a missing column, bad times)."""
+(never flown, extrapolated onboard columns, a byte-identical copy, a missing column, bad times, no rotation)."""
 from __future__ import annotations
 
 import lzma
@@ -145,6 +145,7 @@ def test_an_import_trains_and_replays(imported):
     ("copy", "byte-identical to"),
     ("no battery", "lacks column(s) pwr_pm_vbat"),
     ("times", "times not increasing"),
+    ("quaternion", "attitudes are no rotation"),
     ("missing", "no such file"),
 ])
 def test_bad_files_are_refused_in_one_line_and_nothing_is_written(tmp_path, case, needle):
@@ -159,6 +160,13 @@ def test_bad_files_are_refused_in_one_line_and_nothing_is_written(tmp_path, case
     elif case == "no battery":
         cols = columns(good)
         write_csv(tmp_path / "bad.csv.xz", {k: v for k, v in cols.items() if k != "pwr_pm_vbat"})
+        paths = [tmp_path / "bad.csv.xz"]
+    elif case == "quaternion":
+        cols = columns(good)
+        for c in ("qx", "qy", "qz", "qw"):
+            cols[c] = cols[c].copy()
+            cols[c][300] = 0.0
+        write_csv(tmp_path / "bad.csv.xz", cols)
         paths = [tmp_path / "bad.csv.xz"]
     elif case == "times":
         cols = columns(good)
