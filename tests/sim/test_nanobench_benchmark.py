@@ -1,4 +1,4 @@
-"""The real-flight benchmark on the shipped NanoBench subset (bench/nanobench.py, ~45 s): on the held-out flights the
+"""The real-flight benchmark on the shipped NanoBench subset (bench/nanobench.py, ~55 s): on the held-out flights the
 certified recipe explains more of the z residual than the best linear map inside its bound and than the training
 labels' mean, and the neural ESO's composite estimate f_N + Δf̂ (its network trained on the lag-consistent label)
 tracks the residual more closely than the ESO alone. The figures are printed with ``-s``."""
