@@ -118,7 +118,8 @@ def rms(e: np.ndarray) -> float:
 
 
 def mean_slope(predict, z: np.ndarray, column: int, step: float = 1e-3) -> float:
-    """Mean ∂predict/∂z[:, column] over the rows of ``z`` (N, n) (central difference of ``step`` in the column's unit)."""
+    """Mean ∂predict/∂z[:, column] over the rows of ``z`` (N, n): central differences of ``step`` (the column's
+    unit)."""
     hi, lo = z.copy(), z.copy()
     hi[:, column] += step
     lo[:, column] -= step

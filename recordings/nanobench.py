@@ -49,8 +49,8 @@ label must not reach across it. ``seq`` is the CSV's row, so a stretch's first s
 the row before it (the thrust over the period ending at that sample) is written too.
 
 **Refused** (one line, nothing written): not a readable CSV, a required column missing, times not increasing,
-values not finite, a quaternion that is no rotation, motor ratios outside 0–65535 or the battery outside 2–4.5 V (the dataset extrapolates its
-onboard columns past the end of the onboard log: some files do), never flown (motors never on, or never
+values not finite, a quaternion that is no rotation, motor ratios outside 0–65535 or the battery outside 2–4.5 V
+(the dataset extrapolates its onboard columns past the end of the onboard log: some files do), never flown (motors never on, or never
 ``never_flown_height_m`` above the rest), too little flight above ``fit_height_m`` to fit, the thrust and the
 acceleration inconsistent (residual RMS above ``max_residual_rms_mps2`` at the best scale and lead, or the best
 lead at the top of its grid), and a file byte-identical to an earlier one of the same command (the dataset has 20).
@@ -307,8 +307,9 @@ def nanobench_flight(path: str | Path, config: NanoBenchConfig = NanoBenchConfig
         outside = np.flatnonzero(np.any((values < lo) | (values > hi), axis=1))
         if len(outside):
             worst = values[outside].ravel()[np.argmax(np.abs(values[outside].ravel() - (lo + hi) / 2))]
-            raise ImportRefused(f"{path}: {name} reaches {worst:.6g} (outside {lo:g}–{hi:g}) from t = {t[outside[0]]:.2f} s: "
-                                "the onboard columns run past the end of the onboard log (extrapolated)")
+            raise ImportRefused(f"{path}: {name} reaches {worst:.6g} (outside {lo:g}–{hi:g}) from "
+                                f"t = {t[outside[0]]:.2f} s: the onboard columns run past the end of the onboard log "
+                                "(extrapolated)")
     on = np.any(ratios > 0, axis=1)
     if not on.any():
         raise ImportRefused(f"{path}: never flew: the motors never ran ({t[-1]:.1f} s of rows)")
