@@ -155,8 +155,8 @@ def _gains(config: BenchConfig) -> tuple[float, float, float]:
 
 
 def benchmark(train_files, heldout_files, workdir: str | Path, config: BenchConfig = BenchConfig()) -> dict:
-    """Import, train, evaluate (module docstring); the figures: ``data``, ``gains``, ``fit`` and ``estimate`` (by the
-    rows' names), ``timings_s``. ``ValueError`` when no training or no held-out flight imports."""
+    """Import, train, evaluate (module docstring); the figures: ``data``, ``gains``, ``fit``, ``by_height`` and
+    ``estimate`` (by the rows' names), ``timings_s``. ``ValueError`` when no training or no held-out flight imports."""
     from neso.features import ThrustLag, feature_set
     from neso.learning import RECIPES, recipe_blocks, recipe_bound
     from neso.linear_fit import bounded_linear_fit, r_squared
@@ -230,7 +230,7 @@ def benchmark(train_files, heldout_files, workdir: str | Path, config: BenchConf
         parts["seq"].append(sel.seq)
         parts["flight"].append(np.full(len(sel.seq), i))
     z, z_paper, y, flight = (np.concatenate(parts[k]) for k in ("z", "z_paper", "y", "flight"))
-    pz, vz = fset.columns.index("pos_z_m"), fset.columns.index("vel_z_mps")
+    pz = fset.columns.index("pos_z_m")
     near = z[:, pz] < config.near_ground_m
     predictors = {CERTIFIED: ("a", z, fset), CERTIFIED_APPLIED: ("a'", z, fset), PAPER: ("b", z_paper, paper_fset)}
     candidates = {name: (lambda q, net=networks[key][0]: net.predict(q).ravel(), zz, fs)
