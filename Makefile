@@ -13,9 +13,12 @@ DEMO_S ?= 0
 
 setup: $(STAMP) $(CHROMIUM) px4
 
-# Real PX4 v1.16.0 SITL, built once into ~/.cache/neso/px4-v1.16.0 from $$PX4_SRC or ../shared/px4/ (a stamp makes
-# it a no-op after; ~4 min of every core the first time; one line and no build when neither source is there).
+# Real PX4 v1.16.0 SITL, built once into ~/.cache/neso/px4-v1.16.0 from $$PX4_SRC, ../shared/px4/ or PX4's official
+# repository (a stamp makes it a no-op after; ~4 min of every core the first time). PX4's Python build requirements
+# come from the package index first, into a cached venv: the build itself needs no network. No PX4 to be had: one
+# line naming the three ways, and make setup fails.
 px4:
+	@sim/px4/build.sh requirements
 	@sim/px4/build.sh
 
 # Debian's chromium (Playwright drives it; never a downloaded browser build): as root directly,
