@@ -486,6 +486,12 @@ def free_loopback_port() -> int:
 
 
 def run(args) -> int:
+    if args.world == "px4":
+        from sim.px4_sitl import missing_px4
+
+        if missing_px4():
+            print(f"neso demo tdr: {missing_px4()}", flush=True)
+            return 2
     hub = args.hub or f"tcp/127.0.0.1:{free_loopback_port()}"
     workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
     os.makedirs(workdir, exist_ok=True)

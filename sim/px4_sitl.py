@@ -27,8 +27,8 @@ def missing_px4() -> str:
     binary = px4_binary()
     if binary.is_file() and os.access(binary, os.X_OK):
         return ""
-    return (f"PX4 SITL is not built ({binary} missing): run `make px4` (from $PX4_SRC or ../shared/px4/; "
-            "sim/px4/build.sh)")
+    return (f"PX4 SITL is not built ({binary} missing): run `make setup` (it builds PX4 {PX4_VERSION} from $PX4_SRC, "
+            "../shared/px4/ or PX4's repository: sim/px4/build.sh)")
 
 
 def built_version() -> str:

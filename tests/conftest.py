@@ -32,6 +32,16 @@ def pytest_collection_modifyitems(config, items):
         _groups[item.nodeid] = (tier, "slow") if item.get_closest_marker("slow") else (tier,)
 
 
+def pytest_collection_finish(session):
+    """A px4 tier without PX4 built is one error before any test runs (never a failure per test): ``make setup``
+    builds it or fails saying how to get it."""
+    if any(item.get_closest_marker("px4") for item in session.items):
+        from sim.px4_sitl import missing_px4
+
+        if missing_px4():
+            raise pytest.UsageError(f"the px4 tier cannot run: {missing_px4()}")
+
+
 def pytest_runtest_logreport(report):
     for group in _groups.get(report.nodeid, ()):
         _seconds[group] += report.duration

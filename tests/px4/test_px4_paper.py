@@ -20,14 +20,6 @@ def _neso(*args: str, env: dict | None = None, timeout: float = 300.0) -> subpro
                           capture_output=True, text=True, timeout=timeout)
 
 
-def test_refused_in_one_line_when_px4_is_not_built(tmp_path):
-    done = _neso("--world", "px4", "--json", str(tmp_path / "r.json"),
-                 env=dict(os.environ, NESO_PX4_HOME=str(tmp_path / "none")), timeout=60)
-    assert done.returncode == 2, done.stdout + done.stderr
-    assert done.stdout.strip().splitlines() == [done.stdout.strip()] and "PX4 SITL is not built" in done.stdout
-    assert "Traceback" not in done.stderr and not (tmp_path / "r.json").exists()
-
-
 def test_the_paper_experiments_fly_on_px4_and_the_json_is_real(tmp_path):
     out, details = tmp_path / "paper-px4.json", tmp_path / "details.json"
     started = time.monotonic()  # MAVSDK caches under $HOME: a HOME of the test's own, PX4 where make setup put it

@@ -9,6 +9,7 @@ import shutil
 import stat
 import subprocess
 import sys
+import time
 from dataclasses import replace
 
 import pytest
@@ -200,10 +201,23 @@ def test_px4_starts_as_instance_n_with_the_airframe_in_its_environment():
     assert env == {"PATH": "/bin", "PX4_SIM_MODEL": SIM_MODEL, "PX4_PARAM_EKF2_EV_CTRL": "15"}
 
 
-def test_neso_px4_without_a_build_is_one_clear_line_and_exit_2(tmp_path):
-    done = subprocess.run([str(REPO / ".venv" / "bin" / "neso"), "px4"], capture_output=True, text=True, timeout=60,
-                          env=dict(os.environ, NESO_PX4_HOME=str(tmp_path / "none")))
-    assert done.returncode == 2 and done.stdout.count("\n") == 1 and "make px4" in done.stdout
+@pytest.mark.parametrize("command", [("px4",), ("up", "--vehicle", "px4"), ("experiment", "paper", "--world", "px4"),
+                                     ("demo", "tdr", "--world", "px4")], ids=" ".join)
+def test_every_command_that_needs_px4_says_so_in_one_line_at_once_without_a_build(tmp_path, command):
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "cli.main", *command], cwd=REPO, capture_output=True, text=True,
+                          timeout=60, env=dict(os.environ, NESO_PX4_HOME=str(tmp_path / "none")))
+    assert done.returncode == 2 and done.stderr == "" and done.stdout.count("\n") == 1, done.stdout + done.stderr
+    assert "PX4 SITL is not built" in done.stdout and "make setup" in done.stdout
+    assert time.monotonic() - started < 30, "at once: nothing waited for"  # demo tdr waited 60 s for a PX4 that never came
+
+
+def test_the_benchmarks_px4_row_says_so_in_one_line_without_a_build(tmp_path, monkeypatch):
+    from bench.px4 import COLUMNS, px4_rows
+
+    monkeypatch.setenv("NESO_PX4_HOME", str(tmp_path / "none"))
+    (row,) = px4_rows(quick=True)
+    assert len(row) == len(COLUMNS) and row[0] == "not measured" and "PX4 SITL is not built" in row[-1]
 
 
 def last_value(argv, flag: str) -> str:
@@ -258,3 +272,13 @@ def test_the_dashboard_shows_px4s_version_and_its_own_words():
     text = vehicle_markdown(v)
     assert "PX4 v1.16.0 6ea3539" in text and "**PX4 says**: CRITICAL: Arming denied" in text
 
+
+def test_the_px4_tier_without_px4_is_one_error_before_any_test_runs(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "pytest", "tests/px4", "-p", "no:cacheprovider", "-p", "no:xdist"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, NESO_PX4_HOME=str(tmp_path / "none")))
+    errors = [line for line in (done.stdout + done.stderr).splitlines() if "ERROR" in line or "FAILED" in line]
+    assert done.returncode == pytest.ExitCode.USAGE_ERROR and "no tests ran" in done.stdout, done.stdout + done.stderr
+    assert errors == [f"ERROR: the px4 tier cannot run: PX4 SITL is not built ({tmp_path}/none/bin/px4 missing): run "
+                      "`make setup` (it builds PX4 v1.16.0 from $PX4_SRC, ../shared/px4/ or PX4's repository: "
+                      "sim/px4/build.sh)"], errors
