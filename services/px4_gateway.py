@@ -322,6 +322,7 @@ class Px4Link:
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
         self.actions: queue.Queue = queue.Queue()
+        self.said: queue.Queue = queue.Queue()  # PX4's words not yet on the bus, in order (each gets a message)
 
     # -- life ----------------------------------------------------------------------------
     def run(self) -> None:
@@ -389,9 +390,9 @@ class Px4Link:
         self.node.event("info", f"connected to autopilot system {self.system_id} on {self.config.mavlink}")
 
     def _on_status_text(self, v, _) -> None:
-        """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
+        """PX4's own words (arming refusals, failsafes, landing): each on the telemetry at once, and in the log."""
         text = f"{v.type.name}: {v.text.strip()}"[:160]
-        self.tele["status_text"] = text
+        self.said.put(text)
         self.node.log(f"vehicle says {text}")
 
     def _ask_version(self, system) -> None:
@@ -577,15 +578,34 @@ class Px4Link:
                 self.core.hold_refused(result[1])
 
     def _telemetry_loop(self) -> None:
+        """The vehicle's report at ``telemetry_hz``, and one at once for each of its words: a message carries one
+        text, so words that came between two reports (PX4 says "Disarmed by landing" and a pre-flight check within
+        milliseconds) would otherwise leave only the newest on the bus."""
         put = self.node.publisher("telemetry")
+        period_s = 1.0 / self.config.telemetry_hz
+        due_s = time.monotonic() + period_s
         last_problem = ""
-        while not self.node.wait(1.0 / self.config.telemetry_hz):
+        while not self.node.stopping:
             try:
-                put(self._telemetry())
-            except Exception as exc:  # e.g. a value MAVSDK reported as NaN before its first message
-                if str(exc) != last_problem:
-                    last_problem = str(exc)
-                    self.node.log(f"telemetry not published: {type(exc).__name__}: {exc}")
+                texts = [self.said.get(timeout=max(0.0, min(due_s - time.monotonic(), 0.1)))]
+            except queue.Empty:
+                texts = []
+            if not texts and time.monotonic() < due_s:
+                continue
+            while not self.said.empty():
+                texts.append(self.said.get_nowait())
+            if not texts:  # the periodic report
+                due_s += period_s
+                if due_s < time.monotonic():  # late by more than a period: from now on
+                    due_s = time.monotonic() + period_s
+            for text in texts or [self.tele["status_text"]]:
+                self.tele["status_text"] = text  # the newest stays on the periodic reports (the dashboard shows it)
+                try:
+                    put(self._telemetry())
+                except Exception as exc:  # e.g. a value MAVSDK reported as NaN before its first message
+                    if str(exc) != last_problem:
+                        last_problem = str(exc)
+                        self.node.log(f"telemetry not published: {type(exc).__name__}: {exc}")
 
     def _telemetry(self) -> TelemetryMsg:
         """The vehicle's report (converted to ENU/FLU) plus the gateway's own state; validated."""
