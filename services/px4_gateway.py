@@ -306,6 +306,22 @@ def run(args, bus) -> int:
     return run_node(node, lambda n: Px4Link(n, config).run())
 
 
+def autopilot_version(system) -> tuple[str, str]:
+    """(the firmware's version as the vehicle reports it, ``PX4 v1.16.0 6ea3539``, or "" and why it is unknown):
+    AUTOPILOT_VERSION through MAVSDK's Info; PX4 answers it, a vehicle that does not leaves it unknown."""
+    from mavsdk.plugins.info import Info
+
+    try:
+        v = Info(system).get_version()
+    except Exception as exc:  # InfoError: the vehicle did not answer
+        return "", f"{type(exc).__name__}: {exc}"
+    raw = v.flight_sw_git_hash or ""
+    git = raw[:7] if raw.strip("0") else ""  # MAVSDK gives zeros for a vehicle that never answered
+    if not (v.flight_sw_major or v.flight_sw_minor or v.flight_sw_patch or git):
+        return "", "it did not report one"
+    return f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip(), ""
+
+
 class Px4Link:
     """The MAVSDK side. Bus handlers only compute and send a setpoint (a non-blocking MAVSDK call)
     or store; blocking MAVSDK actions run on a worker thread."""
@@ -396,21 +412,12 @@ class Px4Link:
         self.node.log(f"vehicle says {text}")
 
     def _ask_version(self, system) -> None:
-        """The firmware's version (AUTOPILOT_VERSION through MAVSDK's Info; PX4 answers it, a vehicle that
-        does not leaves it unknown)."""
-        from mavsdk.plugins.info import Info
-
-        try:
-            v = Info(system).get_version()
-        except Exception as exc:  # InfoError: the vehicle did not answer
-            self.node.log(f"the vehicle's version is unknown: {type(exc).__name__}: {exc}")
+        """The firmware's version (:func:`autopilot_version`) on the telemetry."""
+        text, unknown = autopilot_version(system)
+        if not text:
+            self.node.log(f"the vehicle's version is unknown: {unknown}")
             return
-        raw = v.flight_sw_git_hash or ""
-        git = raw[:7] if raw.strip("0") else ""  # MAVSDK gives zeros for a vehicle that never answered
-        if not (v.flight_sw_major or v.flight_sw_minor or v.flight_sw_patch or git):
-            self.node.log("the vehicle's version is unknown: it did not report one")
-            return
-        self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
+        self.tele["autopilot"] = text
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
     def _set_global_origin(self) -> None:
