@@ -282,3 +282,18 @@ def test_the_px4_tier_without_px4_is_one_error_before_any_test_runs(tmp_path):
     assert errors == [f"ERROR: the px4 tier cannot run: PX4 SITL is not built ({tmp_path}/none/bin/px4 missing): run "
                       "`make setup` (it builds PX4 v1.16.0 from $PX4_SRC, ../shared/px4/ or PX4's repository: "
                       "sim/px4/build.sh)"], errors
+
+
+def test_a_px4_instance_chosen_here_is_not_chosen_by_another_process():
+    """Parallel flights on one machine (test workers, a benchmark) each get their own PX4 instance: the choice is
+    held (a lock file per instance, until released or the process ends), not only probed, so two choosers never
+    race to the same ports."""
+    from cli.paper_px4 import free_px4_instance, release_px4_instance
+
+    other = [sys.executable, "-c", "from cli.paper_px4 import free_px4_instance; print(free_px4_instance())"]
+    mine = free_px4_instance()
+    try:
+        theirs = int(subprocess.run(other, cwd=REPO, capture_output=True, text=True, timeout=60, check=True).stdout)
+        assert theirs != mine
+    finally:
+        release_px4_instance(mine)
