@@ -5,6 +5,7 @@ workers run files side by side (``-n``, tests/README.md), the wall-clock span fr
 last test's end; the run's whole span last."""
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -24,6 +25,14 @@ def tier_of(path: Path) -> str:
     if len(parts) < 2 or parts[0] not in TIERS:
         raise pytest.UsageError(f"{path}: a test lives in one of tests/{{{','.join(TIERS)}}}/ (its tier)")
     return parts[0]
+
+
+def pytest_configure(config):
+    """With workers (``-n``), one math thread per process, workers and the processes their tests start alike: two
+    workers on 2 cores whose BLAS and torch each spin up threads for every core took 10× longer on the same numpy."""
+    if getattr(config.option, "numprocesses", None):
+        for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(name, "1")
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
