@@ -128,6 +128,7 @@ class Px4Vehicle:
         self.armed = False
         self.problem = ""  # the bring-up failed (ends the flight)
         self.refused = ""  # PX4's newest refusal of offboard or arm (retried)
+        self.autopilot = ""  # the firmware's version as PX4 reports it once armed ("PX4 v1.16.0 6ea3539")
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._next_s = time.monotonic()
@@ -218,7 +219,8 @@ class Px4Vehicle:
         return {"instance": self.instance, "exchanges": self.world.exchanges, "unanswered": self.world.unanswered,
                 "link_dropped": self.link.dropped, "hover_thrust_learnt": round(self.gateway.core.hover_thrust_norm, 4),
                 "late_periods": self.late_periods,
-                "not_offboard_periods": self.not_offboard_periods, "px4_said": self.texts[-5:]}
+                "not_offboard_periods": self.not_offboard_periods, "px4_said": self.texts[-5:],
+                "autopilot": self.autopilot}
 
     # -- internals ------------------------------------------------------------------------------
     def _advance(self, setpoint: AttitudeSetpoint):
@@ -287,6 +289,10 @@ class Px4Vehicle:
                     except Exception as exc:  # MAVSDK's OffboardError/ActionError: PX4 refused; it is retried
                         self.refused = f"{what}: {exc}"
                         self._stop.wait(1.0)
+            if not self._stop.is_set():
+                from services.px4_gateway import autopilot_version
+
+                self.autopilot = autopilot_version(system)[0] or "unknown"
             self.armed = not self._stop.is_set()
         except Exception as exc:  # the bring-up thread's failure ends the flight with its reason
             self.problem = f"{type(exc).__name__}: {exc}"

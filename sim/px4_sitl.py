@@ -31,14 +31,6 @@ def missing_px4() -> str:
             "../shared/px4/ or PX4's repository: sim/px4/build.sh)")
 
 
-def built_version() -> str:
-    """The version the build recorded (``git describe`` of its source), or "" if none."""
-    try:
-        return (px4_home() / "version").read_text().strip()
-    except OSError:
-        return ""
-
-
 def load_params(path: Path | str = PARAMS_FILE) -> dict[str, str]:
     """``NAME VALUE`` lines (``#`` comments) → {NAME: VALUE}; a malformed line raises ValueError naming it."""
     params: dict[str, str] = {}
