@@ -45,13 +45,16 @@ demo: setup
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
-# Every tier (unit, sim, bus, process, browser; tests/README.md); the time per tier at the end.
+# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) parallel workers, each file whole on
+# one (tests/conftest.py groups them: one browser at a time, at most two PX4 flights); the time per tier and the
+# slowest tests at the end.
+WORKERS ?= 4
 test: setup
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(WORKERS) --durations=20
 
-# The tiers without real-time processes or a browser: under a minute, for every edit.
+# The tiers without real-time processes or a browser, for every edit.
 test-fast: setup
-	$(PY) -m pytest -m "unit or sim or bus"
+	$(PY) -m pytest -m "unit or sim or bus" -n 2 --durations=10
 
 bench: setup
 	$(PY) -m bench

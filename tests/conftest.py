@@ -39,6 +39,37 @@ def pytest_configure(config):
 def pytest_collection_modifyitems(config, items):
     for item in items:
         item.add_marker(tier_of(item.path))
+    # the long lanes first, so that workers start them at once (a file's tests stay together, in file order)
+    items.sort(key=lambda item: ORDER.index(tier_of(item.path)))
+
+
+ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
+# Files that run one after another on one worker: one headless Chromium at a time (it renders WebGL in software: two
+# beside the flights starved them), at most two PX4 SITL flights at a time.
+SERIAL = {"browser": "browser", "px4/test_px4_sitl.py": "px4-a", "px4/test_px4_tdr.py": "px4-a",
+          "px4/test_px4_mocap_lost.py": "px4-a", "px4/test_px4_paper.py": "px4-b",
+          "px4/test_px4_failsafe.py": "px4-b", "px4/test_px4_controller_lost.py": "px4-b"}
+
+
+def worker_group(nodeid: str) -> str:
+    """The unit of work a test is in: its tier's or its file's row of :data:`SERIAL`, else its file (a module's
+    tests share its flight, so they never split over workers)."""
+    relative = nodeid.split("::")[0].removeprefix("tests/")
+    return SERIAL.get(relative) or SERIAL.get(relative.split("/")[0]) or relative
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """With workers (``-n``): every :func:`worker_group` whole on one worker, in collection order (xdist's own
+    ``loadgroup`` marks no longer reach the node ids under pytest 9)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Groups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return worker_group(nodeid)
+
+    config.option.loadscopereorder = False
+    return Groups(config, log)
 
 
 def pytest_collection_finish(session):
