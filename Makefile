@@ -13,9 +13,12 @@ DEMO_S ?= 0
 
 setup: $(STAMP) $(CHROMIUM) px4
 
-# Real PX4 v1.16.0 SITL, built once into ~/.cache/neso/px4-v1.16.0 from $$PX4_SRC or ../shared/px4/ (a stamp makes
-# it a no-op after; ~4 min of every core the first time; one line and no build when neither source is there).
+# Real PX4 v1.16.0 SITL, built once into ~/.cache/neso/px4-v1.16.0 from $$PX4_SRC, ../shared/px4/ or PX4's official
+# repository (a stamp makes it a no-op after; ~4 min of every core the first time). PX4's Python build requirements
+# come from the package index first, into a cached venv: the build itself needs no network. No PX4 to be had: one
+# line naming the three ways, and make setup fails.
 px4:
+	@sim/px4/build.sh requirements
 	@sim/px4/build.sh
 
 # Debian's chromium (Playwright drives it; never a downloaded browser build): as root directly,
@@ -42,13 +45,16 @@ demo: setup
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
-# Every tier (unit, sim, bus, process, browser; tests/README.md); the time per tier at the end.
+# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) parallel workers, each file whole on
+# one (tests/conftest.py groups them: one browser at a time, at most two PX4 flights); the time per tier and the
+# slowest tests at the end.
+WORKERS ?= 4
 test: setup
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(WORKERS) --durations=20
 
-# The tiers without real-time processes or a browser: under a minute, for every edit.
+# The tiers without real-time processes or a browser, for every edit.
 test-fast: setup
-	$(PY) -m pytest -m "unit or sim or bus"
+	$(PY) -m pytest -m "unit or sim or bus" -n 2 --durations=10
 
 bench: setup
 	$(PY) -m bench

@@ -350,11 +350,12 @@ class _Loop:
         return report
 
     def new_world(self) -> float:
-        """Where a lemniscate run's samples begin (a stamp, s): the built-in world restarted with its seed (the runs
-        paired); with PX4 the world flies on (PX4 would not follow a restart), from now."""
+        """Where a lemniscate run's samples begin (a stamp, s), 1 s from now so that what went before (a swap just
+        made, and the samples after it that show it answered) stays in the run before: the built-in world restarted
+        with its seed (the runs paired); with PX4 the world flies on (PX4 would not follow a restart)."""
+        time.sleep(1.0)
         if self.world == "builtin":
             return restart_world(self.probe, self.cmd)
-        time.sleep(1.0)  # what went before (a swap just made) stays in the run before
         return self.probe.get("state")[-1].stamp_s
 
     def take_off_with_px4(self) -> None:
@@ -486,6 +487,12 @@ def free_loopback_port() -> int:
 
 
 def run(args) -> int:
+    if args.world == "px4":
+        from sim.px4_sitl import missing_px4
+
+        if missing_px4():
+            print(f"neso demo tdr: {missing_px4()}", flush=True)
+            return 2
     hub = args.hub or f"tcp/127.0.0.1:{free_loopback_port()}"
     workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
     os.makedirs(workdir, exist_ok=True)

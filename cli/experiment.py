@@ -154,7 +154,7 @@ def _run_px4(config, args) -> int:
 
     from cli.paper_px4 import Px4FlightError, run_px4_paper
     from sim.experiments import results_json, run_paper
-    from sim.px4_sitl import PX4_VERSION, built_version, missing_px4
+    from sim.px4_sitl import missing_px4
     from sim.report import format_worlds
 
     problem = missing_px4()
@@ -177,7 +177,7 @@ def _run_px4(config, args) -> int:
     print(format_worlds(builtin.results, variants, builtin_disturbance))
     print(f"\nbuilt-in world {builtin.seconds:.0f} s ({args.trials} trials); PX4 world {seconds - builtin.seconds:.0f} s "
           f"({px4.trials} trial(s), {sum(len(v['flights']) for v in variants.values())} flights); total {seconds:.0f} s")
-    out = {"world": "px4", "px4_version": built_version() or PX4_VERSION, "experiments": first["experiments"],
+    out = {"world": "px4", "px4_version": reported_version(variants), "experiments": first["experiments"],
            "saturation_percent": first["saturation_percent"], "trials": px4.trials, "seconds": seconds,
            "recipe": next(iter(builtin.by_recipe)), "gains": next(iter(variants)),
            "disturbance_z_std_mps2": first["disturbance_z_std_mps2"],
@@ -191,6 +191,13 @@ def _run_px4(config, args) -> int:
         args.details.write_text(json.dumps({"builtin": builtin.details,
                                             "px4_flights": {g: v["flights"] for g, v in variants.items()}}, indent=2))
     return 0
+
+
+def reported_version(variants: dict) -> str:
+    """The version PX4 itself reported in the flights (``v1.16.0 6ea3539``): one, or every one seen joined by " / "
+    (a build changed under the run); "unknown" when no flight got PX4's answer."""
+    seen = sorted({f.get("autopilot", "") for v in variants.values() for f in v["flights"]} - {"", "unknown"})
+    return " / ".join(s.removeprefix("PX4 ") for s in seen) or "unknown"
 
 
 def _builtin_disturbance(builtin, config, px4_variant: dict) -> dict:

@@ -52,19 +52,40 @@ class Px4FlightError(RuntimeError):
     """A PX4 flight that could not start (PX4 never armed, never connected)."""
 
 
+_CLAIMED: dict[int, object] = {}  # instance → its lock file, open (and locked) while this process flies it
+
+
 def free_px4_instance() -> int:
-    """A PX4 SITL instance (0–9) whose ports are free here (another flight may be running on a shared machine)."""
+    """A PX4 SITL instance (0–9) for this process: one whose lock file (``neso-px4-instance-<i>.lock`` in the temporary
+    folder) no other process holds and whose ports are free here. This process holds the lock until
+    :func:`release_px4_instance` or its end: between choosing an instance and PX4 binding its ports, another flight
+    on this machine (a parallel test, a benchmark) would otherwise take the same one."""
+    import fcntl
+
     for instance in range(10):
+        if instance in _CLAIMED:
+            continue
+        lock = open(os.path.join(tempfile.gettempdir(), f"neso-px4-instance-{instance}.lock"), "w")
         try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
                 tcp.bind(("127.0.0.1", 4560 + instance))
             for port in (14540, 14580, 18570):
                 with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
                     udp.bind(("127.0.0.1", port + instance))
-            return instance
-        except OSError:
+        except OSError:  # held by another process (BlockingIOError), or a port taken
+            lock.close()
             continue
+        _CLAIMED[instance] = lock
+        return instance
     raise Px4FlightError("no free PX4 SITL instance (ports 4560/14540/14580/18570 + 0–9 all taken)")
+
+
+def release_px4_instance(instance: int) -> None:
+    """Let another process fly ``instance`` (its PX4 has stopped)."""
+    lock = _CLAIMED.pop(instance, None)
+    if lock is not None:
+        lock.close()
 
 
 def _die_with_parent() -> None:
@@ -107,6 +128,7 @@ class Px4Vehicle:
         self.armed = False
         self.problem = ""  # the bring-up failed (ends the flight)
         self.refused = ""  # PX4's newest refusal of offboard or arm (retried)
+        self.autopilot = ""  # the firmware's version as PX4 reports it once armed ("PX4 v1.16.0 6ea3539")
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._next_s = time.monotonic()
@@ -193,10 +215,12 @@ class Px4Vehicle:
         self.link.close()
         self._px4_out.close()
         shutil.rmtree(self.workdir, ignore_errors=True)
+        release_px4_instance(self.instance)
         return {"instance": self.instance, "exchanges": self.world.exchanges, "unanswered": self.world.unanswered,
                 "link_dropped": self.link.dropped, "hover_thrust_learnt": round(self.gateway.core.hover_thrust_norm, 4),
                 "late_periods": self.late_periods,
-                "not_offboard_periods": self.not_offboard_periods, "px4_said": self.texts[-5:]}
+                "not_offboard_periods": self.not_offboard_periods, "px4_said": self.texts[-5:],
+                "autopilot": self.autopilot}
 
     # -- internals ------------------------------------------------------------------------------
     def _advance(self, setpoint: AttitudeSetpoint):
@@ -265,6 +289,10 @@ class Px4Vehicle:
                     except Exception as exc:  # MAVSDK's OffboardError/ActionError: PX4 refused; it is retried
                         self.refused = f"{what}: {exc}"
                         self._stop.wait(1.0)
+            if not self._stop.is_set():
+                from services.px4_gateway import autopilot_version
+
+                self.autopilot = autopilot_version(system)[0] or "unknown"
             self.armed = not self._stop.is_set()
         except Exception as exc:  # the bring-up thread's failure ends the flight with its reason
             self.problem = f"{type(exc).__name__}: {exc}"

@@ -4,7 +4,8 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import threading
+
+from runtime.signals import Signalled
 
 
 def add_parser(subparsers) -> None:
@@ -42,11 +43,8 @@ def run(args) -> int:
         if args.web:
             print(f"web viewer: http://127.0.0.1:{args.web_port} (Ctrl-C to stop)", flush=True)
         proc = subprocess.Popen(argv, start_new_session=True)  # its own group: the wrapper and the native viewer
-        stop = threading.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
-        while proc.poll() is None and not stop.wait(0.2):
-            pass
+        stop = Signalled().install()  # a flag, never an event set in the handler (runtime/signals.py)
+        stop.wait(also=lambda: proc.poll() is not None)
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGTERM)
             try:
@@ -67,9 +65,7 @@ def _to_bus(args, rec) -> int:
 
     vehicle = args.as_vehicle or rec.vehicle
     schedule = bus_schedule(rec)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = Signalled().install()
     origin = origin_of(rec)
     print(f"replaying {args.file} ({schedule[-1][0]:.1f} s, {len(schedule)} messages; {origin}) as neso/{vehicle}/ "
           f"at ×{args.speed:g}", flush=True)

@@ -223,10 +223,11 @@ class Dashboard:
             if tick % 2 == 0:
                 self.view.render(now)
 
-    def run(self) -> None:
+    def run(self, until=None) -> None:
+        """Render at the UI rate until :meth:`stop` or ``until`` (an event-like flag: a signal's) is set."""
         tick = 0
         next_t = time.monotonic()
-        while not self._stop.is_set():
+        while not self._stop.is_set() and not (until is not None and until.is_set()):
             try:
                 self.step(tick)
             except Exception as exc:  # a rendering bug must not end the page
@@ -251,38 +252,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args, bus) -> int:
     import os
-    import signal
 
     from runtime.node import freeze_startup_heap
+    from runtime.signals import Signalled
 
     config = config_from_options(DashboardConfig, args)
     if config.nice:
         os.nice(config.nice)
-    stopping = threading.Event()
-    holder: list[Dashboard] = []
-
-    def on_signal(*_) -> None:
-        stopping.set()
-        if holder:
-            holder[0].stop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
-    while not stopping.is_set():
+    signalled = Signalled().install()  # a flag, never an event set in the handler (runtime/signals.py)
+    while not signalled:
         try:
             dash = Dashboard(bus, config, default_vehicle=args.vehicle)
             break
         except PortTaken as exc:  # wait for it rather than crash-loop: the flight never depends on the page
             print(f"[dashboard] {exc}; trying again in {PORT_RETRY_S:g} s", flush=True)
-            stopping.wait(PORT_RETRY_S)
+            signalled.wait(PORT_RETRY_S)
     else:
         return 0
-    holder.append(dash)
     freeze_startup_heap()
-    if stopping.is_set():
-        dash.stop()
     print(f"[dashboard] serving http://{config.host}:{config.port}", flush=True)
     try:
-        dash.run()
+        dash.run(until=signalled)
         return 0
     finally:
         dash.close()

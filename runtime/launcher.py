@@ -21,6 +21,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+from runtime.signals import Signalled
+
 _PR_SET_PDEATHSIG = 1
 EXIT_CONFIG = 2  # a service refused its configuration (argparse's usage error too): never restarted
 
@@ -66,6 +68,7 @@ class Supervisor:
         self.procs: dict[str, subprocess.Popen] = {}
         self.restarts: dict[str, int] = {s.name: 0 for s in specs}
         self.finished = threading.Event()
+        self.signalled = Signalled()  # SIGINT/SIGTERM, once run() installed it (a flag: runtime/signals.py)
         self.exit_code = 0
         self._stopping = False
         self._lock = threading.Lock()
@@ -99,6 +102,8 @@ class Supervisor:
             if self._stopping:
                 return
             for spec in self.specs:
+                if self.signalled:  # a child that Ctrl-C ended is not restarted
+                    return
                 code = self.procs[spec.name].poll()
                 if code is None or self.restarts[spec.name] > self.max_restarts:  # running, or given up on
                     continue
@@ -133,10 +138,9 @@ class Supervisor:
 
     def run(self, poll_s: float = 0.1) -> int:
         """Supervise until a finishing child ends or SIGINT/SIGTERM; then stop everything."""
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.finished.set())
+        self.signalled.install()
         try:
-            while not self.finished.wait(poll_s):
+            while not (self.signalled or self.finished.wait(poll_s)):
                 self.poll()
         finally:
             self.stop()

@@ -14,12 +14,10 @@ import dataclasses
 import gc
 import json
 import os
-import signal
 import sys
 import threading
 import time
 import traceback
-import weakref
 from typing import Any, Callable
 
 from runtime.bus import BusConfig, close_session, open_session, publisher_qos
@@ -28,10 +26,10 @@ from runtime.health import HealthStats
 from runtime.params import ParamSet
 from runtime.schema import (OFFER_COMMANDS, CommandReply, CommandRequest, EventMsg, Keys, Message, ParamReply,
                             ParamRequest, ParamStateMsg, SchemaError)
+from runtime.signals import POLL_S, Signalled
 
 HEALTH_PERIOD_S = 1.0
-_NODES: "weakref.WeakSet[Node]" = weakref.WeakSet()  # every node of this process: a signal stops them all
-_STOPPING = threading.Event()  # a signal came: a node made after it starts stopped
+SIGNALLED = Signalled()  # SIGINT/SIGTERM came (stop_all_on_signals): every node stops, one made later at once
 CommandHandler = Callable[[str, dict], tuple[bool, str]]
 FAILED = (False, "command failed (see events)")
 
@@ -97,9 +95,8 @@ class Node:
         self._answered = AnsweredOnce()
         self._stop = threading.Event()
         self._closed = False  # under the lock: no handler runs once the session is closing
-        if _STOPPING.is_set():
+        if SIGNALLED:
             self._stop.set()
-        _NODES.add(self)
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
         self.bus = bus
@@ -251,7 +248,7 @@ class Node:
                                      text=text[:4096]).to_bytes())
 
     def _health_loop(self) -> None:
-        while not self._stop.wait(HEALTH_PERIOD_S):
+        while not self.wait(HEALTH_PERIOD_S):
             if self.status_hook is not None:
                 self.stats.status = self._guarded("health status", self.status_hook) or "ok"
             try:
@@ -286,17 +283,21 @@ class Node:
 
     @property
     def stopping(self) -> bool:
+        if SIGNALLED and not self._stop.is_set():
+            self._stop.set()  # here, not in the handler (runtime/signals.py)
         return self._stop.is_set()
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        """Until the node stops (True) or ``timeout_s`` passes (False). Without a timeout it still wakes every
-        0.1 s: a SIGINT the kernel hands to one of Zenoh's native threads does not interrupt the main thread's
-        wait, and Python runs the handler only when the main thread wakes (seen as a recorder that ignored
-        Ctrl-C until the launcher's SIGKILL 12 s later)."""
-        if timeout_s is not None:
-            return self._stop.wait(timeout_s)
-        while not self._stop.wait(0.1):
-            pass
+        """Until the node stops (True) or ``timeout_s`` passes (False), waking at least every 0.1 s to see a
+        signal's flag: the handler sets no event (runtime/signals.py), and a SIGINT the kernel hands to one of
+        Zenoh's native threads does not interrupt the main thread's wait either — Python runs the handler only
+        when the main thread wakes (seen as a recorder that ignored Ctrl-C until the launcher's SIGKILL)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self.stopping:
+            left = POLL_S if deadline is None else min(POLL_S, deadline - time.monotonic())
+            if left <= 0:
+                return False
+            self._stop.wait(left)
         return True
 
     def close(self) -> None:
@@ -313,13 +314,9 @@ class Node:
 
 
 def stop_all_on_signals() -> None:
-    """SIGINT/SIGTERM stop every node of this process, those made later included (main thread only)."""
-    def stop(*_) -> None:
-        _STOPPING.set()
-        for node in list(_NODES):
-            node._stop.set()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, stop)
+    """SIGINT/SIGTERM stop every node of this process, those made later included (main thread only): the handler
+    sets :data:`SIGNALLED`, which every node's :attr:`Node.stopping` and :meth:`Node.wait` read."""
+    SIGNALLED.install()
 
 
 def freeze_startup_heap() -> None:

@@ -11,8 +11,6 @@ at 10, 100, … (:mod:`runtime.refusals`).
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,10 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args, bus) -> int:
     from runtime.bus import open_session
+    from runtime.signals import Signalled
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    signalled = Signalled().install()  # a flag, never an event set in the handler (runtime/signals.py)
     if bus.credentials is not None:
         from runtime.refusals import RefusalCounter, capture_zenoh_log
 
@@ -40,7 +37,7 @@ def run(args, bus) -> int:
         secure = (f"; mutual TLS as {bus.credentials.identity!r} (CA {bus.credentials.ca}), access control from "
                   "the service graph") if bus.credentials is not None else ""
         print(f"[hub] Zenoh router {session.info.zid()} listening on {', '.join(bus.listen)}{secure}", flush=True)
-        stop.wait()
+        signalled.wait()
     finally:
         session.close()
     return 0

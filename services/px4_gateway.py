@@ -306,6 +306,22 @@ def run(args, bus) -> int:
     return run_node(node, lambda n: Px4Link(n, config).run())
 
 
+def autopilot_version(system) -> tuple[str, str]:
+    """(the firmware's version as the vehicle reports it, ``PX4 v1.16.0 6ea3539``, or "" and why it is unknown):
+    AUTOPILOT_VERSION through MAVSDK's Info; PX4 answers it, a vehicle that does not leaves it unknown."""
+    from mavsdk.plugins.info import Info
+
+    try:
+        v = Info(system).get_version()
+    except Exception as exc:  # InfoError: the vehicle did not answer
+        return "", f"{type(exc).__name__}: {exc}"
+    raw = v.flight_sw_git_hash or ""
+    git = raw[:7] if raw.strip("0") else ""  # MAVSDK gives zeros for a vehicle that never answered
+    if not (v.flight_sw_major or v.flight_sw_minor or v.flight_sw_patch or git):
+        return "", "it did not report one"
+    return f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip(), ""
+
+
 class Px4Link:
     """The MAVSDK side. Bus handlers only compute and send a setpoint (a non-blocking MAVSDK call)
     or store; blocking MAVSDK actions run on a worker thread."""
@@ -322,6 +338,7 @@ class Px4Link:
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
         self.actions: queue.Queue = queue.Queue()
+        self.said: queue.Queue = queue.Queue()  # PX4's words not yet on the bus, in order (each gets a message)
 
     # -- life ----------------------------------------------------------------------------
     def run(self) -> None:
@@ -389,27 +406,18 @@ class Px4Link:
         self.node.event("info", f"connected to autopilot system {self.system_id} on {self.config.mavlink}")
 
     def _on_status_text(self, v, _) -> None:
-        """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
+        """PX4's own words (arming refusals, failsafes, landing): each on the telemetry at once, and in the log."""
         text = f"{v.type.name}: {v.text.strip()}"[:160]
-        self.tele["status_text"] = text
+        self.said.put(text)
         self.node.log(f"vehicle says {text}")
 
     def _ask_version(self, system) -> None:
-        """The firmware's version (AUTOPILOT_VERSION through MAVSDK's Info; PX4 answers it, a vehicle that
-        does not leaves it unknown)."""
-        from mavsdk.plugins.info import Info
-
-        try:
-            v = Info(system).get_version()
-        except Exception as exc:  # InfoError: the vehicle did not answer
-            self.node.log(f"the vehicle's version is unknown: {type(exc).__name__}: {exc}")
+        """The firmware's version (:func:`autopilot_version`) on the telemetry."""
+        text, unknown = autopilot_version(system)
+        if not text:
+            self.node.log(f"the vehicle's version is unknown: {unknown}")
             return
-        raw = v.flight_sw_git_hash or ""
-        git = raw[:7] if raw.strip("0") else ""  # MAVSDK gives zeros for a vehicle that never answered
-        if not (v.flight_sw_major or v.flight_sw_minor or v.flight_sw_patch or git):
-            self.node.log("the vehicle's version is unknown: it did not report one")
-            return
-        self.tele["autopilot"] = f"PX4 v{v.flight_sw_major}.{v.flight_sw_minor}.{v.flight_sw_patch} {git}".strip()
+        self.tele["autopilot"] = text
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
     def _set_global_origin(self) -> None:
@@ -577,15 +585,34 @@ class Px4Link:
                 self.core.hold_refused(result[1])
 
     def _telemetry_loop(self) -> None:
+        """The vehicle's report at ``telemetry_hz``, and one at once for each of its words: a message carries one
+        text, so words that came between two reports (PX4 says "Disarmed by landing" and a pre-flight check within
+        milliseconds) would otherwise leave only the newest on the bus."""
         put = self.node.publisher("telemetry")
+        period_s = 1.0 / self.config.telemetry_hz
+        due_s = time.monotonic() + period_s
         last_problem = ""
-        while not self.node.wait(1.0 / self.config.telemetry_hz):
+        while not self.node.stopping:
             try:
-                put(self._telemetry())
-            except Exception as exc:  # e.g. a value MAVSDK reported as NaN before its first message
-                if str(exc) != last_problem:
-                    last_problem = str(exc)
-                    self.node.log(f"telemetry not published: {type(exc).__name__}: {exc}")
+                texts = [self.said.get(timeout=max(0.0, min(due_s - time.monotonic(), 0.1)))]
+            except queue.Empty:
+                texts = []
+            if not texts and time.monotonic() < due_s:
+                continue
+            while not self.said.empty():
+                texts.append(self.said.get_nowait())
+            if not texts:  # the periodic report
+                due_s += period_s
+                if due_s < time.monotonic():  # late by more than a period: from now on
+                    due_s = time.monotonic() + period_s
+            for text in texts or [self.tele["status_text"]]:
+                self.tele["status_text"] = text  # the newest stays on the periodic reports (the dashboard shows it)
+                try:
+                    put(self._telemetry())
+                except Exception as exc:  # e.g. a value MAVSDK reported as NaN before its first message
+                    if str(exc) != last_problem:
+                        last_problem = str(exc)
+                        self.node.log(f"telemetry not published: {type(exc).__name__}: {exc}")
 
     def _telemetry(self) -> TelemetryMsg:
         """The vehicle's report (converted to ENU/FLU) plus the gateway's own state; validated."""

@@ -35,8 +35,14 @@ ready, STANDBY when ready (MAVLink's HEARTBEAT stream), and SYS_STATUS's ``MAV_S
 bit (MAVSDK's ``health.is_armable``). External vision lost for longer than ``ev_timeout_s`` while disarmed makes
 it not ready again, silently, until it has settled again.
 
+**Its clock is the world's**, as PX4 SITL's is in lockstep with its simulator: every timeout and interval above
+(external vision's settling and loss, offboard loss, the disarm after landing, its reports) is measured in the
+world time the simulator hands to :meth:`control` and :meth:`publish`; what arrives between two steps is stamped
+with the newest. A loaded machine that slows the world slows this PX4 with it, never the other way round.
+
 Everything received is logged (``log``, and as JSON lines to ``log_path`` if given) with its
-``time.monotonic()`` arrival stamp, so tests can check what actually reached the vehicle.
+``time.monotonic()`` arrival stamp (``t``) and the vehicle's time then (``vehicle_t_s``), so tests can check what
+actually reached the vehicle.
 Frames: MAVLink attitudes are NED/FRD; the simulator is ENU/FLU (converted here).
 """
 from __future__ import annotations
@@ -126,6 +132,7 @@ class MavlinkVehicle:
         self.offboard_setpoint: AttitudeSetpoint | None = None
         self.offboard_setpoint_s = -math.inf
         self.log: list[dict] = []
+        self.received = 0  # MAVLink messages its receiver has handled (tests wait for theirs before stepping on)
         self._log_file = open(config.log_path, "a", buffering=1) if config.log_path else None
         ctrl = ControlConfig(dt_s=dt_s, vehicle=VehicleModel(hover_thrust_norm=config.hover_thrust_norm))
         self._position = PositionController(ctrl)
@@ -135,14 +142,14 @@ class MavlinkVehicle:
         self._home_enu_m: np.ndarray | None = None
         self._last_meas: StateMeasurement | None = None
         self._on_ground = True
-        self._ev_since_s: float | None = None  # monotonic start of the current unbroken external-vision run
+        self._ev_since_s: float | None = None  # start of the current unbroken external-vision run (vehicle time)
         self._ev_last_s = -math.inf
         self.ready = False  # its pre-flight checks pass (module docstring)
         self._said_ready = False
         self._last_report_s = -math.inf
         self._report_due = False  # a change of the checks' results not yet reported (PX4's rate limit)
         self._text_id = 0  # STATUSTEXT id, one per text
-        self._t0 = time.monotonic()
+        self.t_s = 0.0  # the vehicle's clock: the world's time, as the simulator last handed it (module docstring)
         self._next_slow_s = 0.0
         self._next_hb_s = 0.0
         self._stop = threading.Event()
@@ -151,6 +158,7 @@ class MavlinkVehicle:
 
     # -- what arrives ------------------------------------------------------------------------
     def _record(self, entry: dict) -> None:
+        entry["vehicle_t_s"] = self.t_s
         self.log.append(entry)
         if len(self.log) > 200_000:
             del self.log[:100_000]
@@ -167,28 +175,29 @@ class MavlinkVehicle:
                 continue
             if msg is None:
                 continue
-            now = time.monotonic()
+            now, arrived = self.t_s, time.monotonic()
             kind = msg.get_type()
             if kind == "ODOMETRY" and msg.quality >= 1:  # EKF2_EV_QMIN 1 (sim/px4/neso_quad.params): -1 is not fused
                 self._on_external_vision(now)
             if kind == "SET_ATTITUDE_TARGET":
-                self._on_attitude_target(msg, now)
+                self._on_attitude_target(msg, now, arrived)
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
-                self._on_command(msg, now)
+                self._on_command(msg, now, arrived)
             elif kind == "ODOMETRY":
-                self._record({"t": now, "kind": "odometry", "xyz_ned": [msg.x, msg.y, msg.z], "q": list(msg.q),
+                self._record({"t": arrived, "kind": "odometry", "xyz_ned": [msg.x, msg.y, msg.z], "q": list(msg.q),
                               "frame": msg.frame_id})
             elif kind == "SET_GPS_GLOBAL_ORIGIN":  # PX4 takes it as its EKF origin and reports it back
-                self._record({"t": now, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
+                self._record({"t": arrived, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
                 self._send(lambda m: m.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, 0))
             elif kind == "PARAM_REQUEST_LIST":
                 self._send(lambda m: m.param_value_send(b"MIS_TAKEOFF_ALT", self.config.takeoff_height_m,
                                                         mavlink.MAV_PARAM_TYPE_REAL32, 1, 0))
+            self.received += 1  # handled
 
-    def _on_attitude_target(self, msg, now: float) -> None:
+    def _on_attitude_target(self, msg, now: float, arrived: float) -> None:
         q = tuple(float(v) for v in msg.q)
         thrust = float(msg.thrust)
-        entry = {"t": now, "kind": "setpoint", "q": q, "thrust": thrust, "mask": int(msg.type_mask)}
+        entry = {"t": arrived, "kind": "setpoint", "q": q, "thrust": thrust, "mask": int(msg.type_mask)}
         finite = all(math.isfinite(v) for v in (*q, thrust)) and abs(math.sqrt(sum(v * v for v in q)) - 1) < 1e-3
         if finite and 0.0 <= thrust <= 1.0:
             roll_ned, pitch_ned, yaw_ned = quat_to_euler_ned(q)
@@ -222,7 +231,7 @@ class MavlinkVehicle:
                 ready = ready or self.ready  # once flying, its failsafes (not these checks) act on a loss
             if ready != self.ready:
                 self.ready, changed, became_ready = ready, True, ready
-                self._record({"t": now, "kind": "preflight", "ready": ready})
+                self._record({"t": time.monotonic(), "kind": "preflight", "ready": ready})
             if self._report_due and not ready and now - self._last_report_s >= c.health_report_interval_s:
                 self._report_due, self._last_report_s, say = False, now, NOT_SETTLED
             elif ready:
@@ -232,13 +241,13 @@ class MavlinkVehicle:
         if say:
             self._say(mavlink.MAV_SEVERITY_CRITICAL, say)
         if print_ready:
-            self._record({"t": now, "kind": "console", "text": READY})
+            self._record({"t": time.monotonic(), "kind": "console", "text": READY})
             if self.console is not None:
                 self.console(READY)
         if changed:
             self._heartbeat()  # system_status changes with the checks
 
-    def _on_command(self, msg, now: float) -> None:
+    def _on_command(self, msg, now: float, arrived: float) -> None:
         cmd = int(msg.command)
         params = [float(getattr(msg, f"param{i}")) for i in range(1, 5)]
         if msg.get_type() == "COMMAND_LONG":
@@ -275,7 +284,7 @@ class MavlinkVehicle:
                 self._set_mode(MAIN_AUTO, SUB_LAND)
                 said = "Landing at current position"
             state = (self.armed, self.mode_name)
-        self._record({"t": now, "kind": "command", "command": cmd, "params": params, "result": int(result),
+        self._record({"t": arrived, "kind": "command", "command": cmd, "params": params, "result": int(result),
                       "armed": state[0], "mode": state[1]})
         self._send(lambda m: m.command_ack_send(cmd, result, 100, 0, msg.get_srcSystem(), msg.get_srcComponent()))
         if said:
@@ -299,8 +308,9 @@ class MavlinkVehicle:
 
     # -- what the simulator applies ----------------------------------------------------------
     def control(self, meas: StateMeasurement, *, on_ground: bool) -> AttitudeSetpoint:
-        """The attitude/thrust command for the next period given the vehicle's state."""
-        now = time.monotonic()
+        """The attitude/thrust command for the next period given the vehicle's state (``meas.t_s``: the world's
+        time, the vehicle's clock)."""
+        now = self.t_s = meas.t_s
         self._last_meas = meas
         self._on_ground = on_ground
         if self._home_enu_m is None:
@@ -313,14 +323,14 @@ class MavlinkVehicle:
             if self._offboard_lost and fresh and (self.main_mode, self.sub_mode) in ((MAIN_AUTO, SUB_LAND),
                                                                                       (MAIN_AUTO, SUB_LOITER)):
                 self._set_mode(MAIN_OFFBOARD, 0)  # PX4 ends its offboard-loss failsafe when setpoints stream again
-                self._record({"t": now, "kind": "failsafe", "what": "setpoints again: back to offboard"})
+                self._record({"t": time.monotonic(), "kind": "failsafe", "what": "setpoints again: back to offboard"})
             if self.main_mode == MAIN_OFFBOARD:
                 if fresh:
                     self._offboard_lost = False
                     return self.offboard_setpoint
                 # PX4's offboard-loss action COM_OBL_RC_ACT (sim/px4/neso_quad.params)
                 action = self.config.offboard_loss_action
-                self._record({"t": now, "kind": "failsafe", "what": f"offboard loss: {action}"})
+                self._record({"t": time.monotonic(), "kind": "failsafe", "what": f"offboard loss: {action}"})
                 self._say(mavlink.MAV_SEVERITY_CRITICAL, "Failsafe activated")
                 self._set_mode(MAIN_AUTO, SUB_LOITER if action == "hold" else SUB_LAND)
                 self._offboard_lost = True
@@ -347,7 +357,7 @@ class MavlinkVehicle:
                     if meas.t_s - self._touchdown_s >= self.config.disarm_after_landing_s:
                         self.armed, self._touchdown_s, self._offboard_lost = False, None, False
                         self._set_mode(MAIN_AUTO, SUB_READY)  # the next arming starts from "ready", not from "land"
-                        self._record({"t": now, "kind": "disarmed", "why": "landed"})
+                        self._record({"t": time.monotonic(), "kind": "disarmed", "why": "landed"})
                         self._say(mavlink.MAV_SEVERITY_INFO, "Disarmed by landing")
                     return AttitudeSetpoint(0.0, 0.0, meas.yaw_rad, 0.0, 0.0)
                 target[2] = self._target[2] - self.config.land_speed_mps * self.dt_s
@@ -389,10 +399,11 @@ class MavlinkVehicle:
             self._send(lambda m, chunk=data[k:k + 50], seq=seq: m.statustext_send(severity, chunk, text_id, seq))
 
     def publish(self, meas: StateMeasurement, *, t_s: float, body_rates_frd_rps=(0.0, 0.0, 0.0)) -> None:
-        """Telemetry after a simulator step: fast messages every call, slow ones at 1–10 Hz."""
-        now = time.monotonic()
+        """Telemetry after a simulator step (``t_s``: the world's time, the vehicle's clock): fast messages every
+        call, slow ones at 1–10 Hz."""
+        now = self.t_s = t_s
         self._check(now)
-        boot_ms = int((now - self._t0) * 1e3) & 0xFFFFFFFF
+        boot_ms = int(now * 1e3) & 0xFFFFFFFF
         pos_ned = (float(meas.pos_enu_m[1]), float(meas.pos_enu_m[0]), -float(meas.pos_enu_m[2]))
         vel_ned = (float(meas.vel_enu_mps[1]), float(meas.vel_enu_mps[0]), -float(meas.vel_enu_mps[2]))
         q = quat_ned_from_enu_euler(meas.roll_rad, meas.pitch_rad, meas.yaw_rad)
@@ -402,7 +413,7 @@ class MavlinkVehicle:
         self._send(lambda m: m.attitude_quaternion_send(boot_ms, *q, p, qr, r))
         self._send(lambda m: m.local_position_ned_send(boot_ms, *pos_ned, *vel_ned))
         nan21 = [math.nan] + [0.0] * 20
-        self._send(lambda m: m.odometry_send(int((now - self._t0) * 1e6), mavlink.MAV_FRAME_LOCAL_NED,
+        self._send(lambda m: m.odometry_send(int(now * 1e6), mavlink.MAV_FRAME_LOCAL_NED,
                                              mavlink.MAV_FRAME_BODY_FRD, *pos_ned, list(q), *_frd_velocity(q, vel_ned),
                                              p, qr, r, nan21, nan21, 0, mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100))
         if now >= self._next_hb_s:
@@ -423,7 +434,7 @@ class MavlinkVehicle:
                                                         int(vel_ned[2] * 100), hdg))
         self._send(lambda m: m.home_position_send(int(lat0 * 1e7), int(lon0 * 1e7), int(alt0 * 1e3), 0.0, 0.0, 0.0,
                                                   [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0))
-        volts, remaining = self.battery(time.monotonic() - self._t0)
+        volts, remaining = self.battery(self.t_s)
         health = mavlink.MAV_SYS_STATUS_PREARM_CHECK if self.ready else 0  # PX4's SYS_STATUS stream sets only this
         self._send(lambda m: m.sys_status_send(0, 0, health, 500, int(volts * 1e3), -1, int(remaining * 100), 0, 0, 0,
                                                0, 0, 0))

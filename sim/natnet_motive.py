@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-import threading
+import time
 
 from sim.natnet_server import NatNetServer, NatNetServerConfig, SharedMotive, StreamModel
 
@@ -36,12 +36,13 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"natnet_motive: cannot listen on 127.0.0.1:{args.port}/{args.feed_port}: {exc}", file=sys.stderr)
         return 1
-    stop = threading.Event()
+    caught: list[int] = []  # the handler only appends (no lock: one that waited on what it interrupted could hang)
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, lambda signum, _frame: caught.append(signum))
     print(f"simulated Motive: NatNet 4.1 on 127.0.0.1:{args.port} (data {args.port + 1}), {args.up_axis}-up, "
           f"{args.rate:g} Hz, rigid bodies {dict(server.config.bodies)}; fed on UDP {args.feed_port}", flush=True)
-    stop.wait()
+    while not caught:
+        time.sleep(0.1)
     motive.close()
     server.close()
     print(f"simulated Motive: {server.sent} frames sent, {motive.dropped} dropped, {motive.stale} rigid bodies "

@@ -27,16 +27,8 @@ def missing_px4() -> str:
     binary = px4_binary()
     if binary.is_file() and os.access(binary, os.X_OK):
         return ""
-    return (f"PX4 SITL is not built ({binary} missing): run `make px4` (from $PX4_SRC or ../shared/px4/; "
-            "sim/px4/build.sh)")
-
-
-def built_version() -> str:
-    """The version the build recorded (``git describe`` of its source), or "" if none."""
-    try:
-        return (px4_home() / "version").read_text().strip()
-    except OSError:
-        return ""
+    return (f"PX4 SITL is not built ({binary} missing): run `make setup` (it builds PX4 {PX4_VERSION} from $PX4_SRC, "
+            "../shared/px4/ or PX4's repository: sim/px4/build.sh)")
 
 
 def load_params(path: Path | str = PARAMS_FILE) -> dict[str, str]:

@@ -82,6 +82,7 @@ class NesoUp:
 
         self.proc = neso("up", *args)
         self.output: list[str] = []
+        self.output_s: list[float] = []  # when each line of ``output`` arrived (time.monotonic())
         self._pump_thread = threading.Thread(target=self._pump, daemon=True)
         self._pump_thread.start()
         self._session_cm = session(bus)
@@ -90,6 +91,7 @@ class NesoUp:
 
     def _pump(self) -> None:
         for line in self.proc.stdout:
+            self.output_s.append(time.monotonic())
             self.output.append(line)
 
     def close(self, *, kill: bool = False) -> str:

@@ -1,8 +1,11 @@
 """Tiers by folder: every test gets the marker of the folder it lives in (``tests/<tier>/...``), so a
 new test file needs nothing to be in its tier. ``slow`` is set by hand. At the end of a run, the
-time each tier took (setup + call + teardown of its tests, module fixtures included)."""
+time each tier took: its tests' own time (setup + call + teardown, module fixtures included) and, since
+workers run files side by side (``-n``, tests/README.md), the wall-clock span from its first test's start to its
+last test's end; the run's whole span last."""
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -11,9 +14,9 @@ import pytest
 TIERS = ("unit", "sim", "bus", "process", "browser", "px4")  # registered in pyproject.toml, with "slow"
 TESTS = Path(__file__).resolve().parent
 
-_groups: dict[str, tuple[str, ...]] = {}  # node id → its tier, and "slow" if it is marked so
 _seconds: dict[str, float] = defaultdict(float)
 _counts: dict[str, int] = defaultdict(int)
+_spans: dict[str, list[float]] = {}  # group → [first start, last stop] (epoch s)
 
 
 def tier_of(path: Path) -> str:
@@ -24,27 +27,96 @@ def tier_of(path: Path) -> str:
     return parts[0]
 
 
+def pytest_configure(config):
+    """With workers (``-n``), one math thread per process, workers and the processes their tests start alike: two
+    workers on 2 cores whose BLAS and torch each spin up threads for every core took 10× longer on the same numpy."""
+    if getattr(config.option, "numprocesses", None):
+        for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(name, "1")
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        tier = tier_of(item.path)
-        item.add_marker(tier)
-        _groups[item.nodeid] = (tier, "slow") if item.get_closest_marker("slow") else (tier,)
+        item.add_marker(tier_of(item.path))
+    # the long lanes first, so that workers start them at once (a file's tests stay together, in file order)
+    items.sort(key=lambda item: ORDER.index(tier_of(item.path)))
+
+
+ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
+# Files that run one after another on one worker: one headless Chromium at a time (it renders WebGL in software: two
+# beside the flights starved them), at most two PX4 SITL flights at a time.
+SERIAL = {"browser": "browser", "px4/test_px4_sitl.py": "px4-a", "px4/test_px4_tdr.py": "px4-a",
+          "px4/test_px4_mocap_lost.py": "px4-a", "px4/test_px4_paper.py": "px4-b",
+          "px4/test_px4_failsafe.py": "px4-b", "px4/test_px4_controller_lost.py": "px4-b"}
+
+
+def worker_group(nodeid: str) -> str:
+    """The unit of work a test is in: its tier's or its file's row of :data:`SERIAL`, else its file (a module's
+    tests share its flight, so they never split over workers)."""
+    relative = nodeid.split("::")[0].removeprefix("tests/")
+    return SERIAL.get(relative) or SERIAL.get(relative.split("/")[0]) or relative
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """With workers (``-n``): every :func:`worker_group` whole on one worker, in collection order (xdist's own
+    ``loadgroup`` marks no longer reach the node ids under pytest 9)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Groups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return worker_group(nodeid)
+
+    config.option.loadscopereorder = False
+    return Groups(config, log)
+
+
+def pytest_collection_finish(session):
+    """A px4 tier without PX4 built is one error before any test runs (never a failure per test): ``make setup``
+    builds it or fails saying how to get it."""
+    if any(item.get_closest_marker("px4") for item in session.items):
+        _refuse_without_px4()
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids):
+    """The same with workers (``-n``): the controller sees what they collected, before any test runs."""
+    if any(nodeid.startswith("tests/px4/") for nodeid in ids):
+        _refuse_without_px4()
+
+
+def _refuse_without_px4() -> None:
+    from sim.px4_sitl import missing_px4
+
+    if missing_px4():
+        raise pytest.UsageError(f"the px4 tier cannot run: {missing_px4()}")
 
 
 def pytest_runtest_logreport(report):
-    for group in _groups.get(report.nodeid, ()):
+    """Counted where the reports arrive: in the only process, or in the controller of the workers."""
+    tier = report.nodeid.split("/")[1] if report.nodeid.startswith("tests/") else ""
+    if tier not in TIERS:
+        return
+    for group in (tier, "slow") if "slow" in report.keywords else (tier,):
         _seconds[group] += report.duration
         _counts[group] += report.when == "setup"
+        span = _spans.setdefault(group, [report.start, report.stop])
+        span[0], span[1] = min(span[0], report.start), max(span[1], report.stop)
 
 
 def pytest_terminal_summary(terminalreporter):
     if not _counts:
         return
     terminalreporter.section("time per tier")
+    terminalreporter.write_line(f"{'':<8} {'tests s':>8} {'wall s':>7}  (wall: first start to last end; workers run "
+                                "tiers side by side)")
     for tier in (*TIERS, "slow"):
         if _counts.get(tier):
             note = " (marked slow; also counted in their tier)" if tier == "slow" else ""
-            terminalreporter.write_line(f"{tier:<8} {_seconds[tier]:7.1f} s  {_counts[tier]:4d} tests{note}")
+            span = _spans[tier][1] - _spans[tier][0]
+            terminalreporter.write_line(f"{tier:<8} {_seconds[tier]:8.1f} {span:7.1f}  {_counts[tier]:4d} tests{note}")
     total = sum(_seconds[t] for t in TIERS)
-    terminalreporter.write_line(f"{'all':<8} {total:7.1f} s  {sum(_counts[t] for t in TIERS):4d} tests")
+    spans = [_spans[t] for t in TIERS if t in _spans]
+    wall = max(s[1] for s in spans) - min(s[0] for s in spans)
+    terminalreporter.write_line(f"{'all':<8} {total:8.1f} {wall:7.1f}  {sum(_counts[t] for t in TIERS):4d} tests")

@@ -6,9 +6,12 @@ with the simulator's truth.
 """
 from __future__ import annotations
 
+import math
 import os
 import random
 import signal
+import subprocess
+import tempfile
 import time
 
 import msgpack
@@ -26,8 +29,10 @@ KEYS = Keys("uav1")
 class Flight(NesoUp):
     def __init__(self):
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        workdir = tempfile.mkdtemp(prefix="neso-live-flight-")
         super().__init__("--scenario", "nominal_landing", "--mission", "hover", "--hub", self.endpoint, "--no-dashboard",
-                         bus=peer(self.endpoint), topics=("state", "truth", "estimate", "setpoint", "reference", "network"))
+                         "--no-trainer", "--recordings-dir", f"{workdir}/recordings", bus=peer(self.endpoint),
+                         topics=("state", "truth", "estimate", "setpoint", "reference", "network"), workdir=workdir)
         self.health: dict[str, HealthMsg] = {}
         self.param_states: list[ParamStateMsg] = []
         self.events: list[EventMsg] = []
@@ -53,10 +58,10 @@ class Flight(NesoUp):
     def wait_flying(self, timeout_s=30.0):
         self.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 50, timeout_s)
 
-    def tracking_error_m(self, since_seq: int) -> float:
-        """Largest ‖truth − reference‖ over samples ≥ ``since_seq``."""
-        refs = {m.seq: m.pos_enu_m for m in self.probe.get("reference") if m.seq >= since_seq}
-        truth = {m.seq: m.pos_enu_m for m in self.probe.get("truth") if m.seq >= since_seq}
+    def tracking_error_m(self, since_seq: int, until_seq: float = math.inf) -> float:
+        """Largest ‖truth − reference‖ over samples ``since_seq`` ≤ seq < ``until_seq``."""
+        refs = {m.seq: m.pos_enu_m for m in self.probe.get("reference") if since_seq <= m.seq < until_seq}
+        truth = {m.seq: m.pos_enu_m for m in self.probe.get("truth") if since_seq <= m.seq < until_seq}
         common = sorted(set(refs) & set(truth))
         assert len(common) > 10
         return max(float(np.linalg.norm(np.subtract(truth[k], refs[k]))) for k in common)
@@ -131,9 +136,9 @@ def test_the_services_refuse_changes_outside_the_certificate_with_the_margin_unl
     subs = [flight.s.declare_subscriber(KEYS.event(svc), lambda smp: events.append(EventMsg.from_bytes(
         smp.payload.to_bytes()))) for svc in ("estimator", "controller")]
     try:
-        double = _bound("base-x2")  # stable, but its |e_z| bound more than twice PD+ESO's: not certified to fly well
+        double = _bound("base-x2")
         code, out = _neso_out("params", "set", "estimator", f"lipschitz_bound={double!r}", "--connect", flight.endpoint)
-        assert code == 1 and "certificate FAILS" in out and "fly well" in out and "cm" in out and "override" in out, out
+        assert code == 1 and "certificate FAILS" in out and "margin -" in out and "override" in out, out
         code, out = _neso_out("params", "set", "controller", "kd_z=0.5", "--connect", flight.endpoint)
         assert code == 1 and "certificate FAILS" in out and "margin -" in out, out
         assert get_params(flight.s, KEYS, "controller").values["kd_z"] == 6.0
@@ -190,7 +195,6 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_the_flight_goes
     pids = {r: flight.pid_of(r) for r in ("source", "estimator", "controller")}
     flight.wait_health(pids)  # run alone, the test comes before the services' first reports
     before = {s: dict(h.rejected) for s, h in flight.health.items()}
-    start = flight.latest_seq()
     import zenoh
 
     pubs = {t: flight.s.declare_publisher(KEYS.topic(t), congestion_control=zenoh.CongestionControl.BLOCK)
@@ -222,25 +226,21 @@ def test_ten_thousand_malformed_payloads_per_key_are_counted_and_the_flight_goes
     time.sleep(1.5)  # one report more: none counted twice
     assert counted() == {k: 10_000 for k in expected}, "rejected payloads counted per (service, topic)"
     assert {r: flight.pid_of(r) for r in pids} == pids, "no service crashed or restarted"
-    # the flight goes on: samples without a setpoint made from the estimator's f̂, flooded windows against the
-    # quiet ones between them. The flood is decoded on the loop's CPU — one CPU under `neso up --isolate`, the
-    # default on 2 CPUs — so some flooded samples are flown on the controller's local ESO, which is what it is for.
-    # How many is a matter of the machine's speed and load (measured: 0–18 of 250 in five isolated runs here, 44
-    # and 75 in two full CI runs beside other work; docs/benchmarks.md "The hot path"), so it is printed, not
-    # bounded; what is bounded is that the estimator is not starved — most flooded samples still fly on its
-    # estimates — and that the vehicle stays under control. How closely it tracks meanwhile follows from that
-    # share (local-ESO samples track worse): within 5 cm in isolated runs, 5.7, 11.6 and 14 cm worst in three
-    # full-suite runs beside other work, so it is printed beside the share and bounded only against losing the
-    # vehicle.
+    # the flight goes on as if unflooded, judged against the quiet windows flown between the flooded ones in the same
+    # seconds (the shared machine's load falls on both kinds alike): samples flown without the estimator's f̂ (on the
+    # controller's local ESO, which is what it is for) no more than in the quiet windows beyond their own noise (3
+    # sigma, Poisson) and 5 % of the samples, and the hover as close to its reference as in the quiet windows.
     flown = {m.seq for m in flight.probe.get("setpoint") if m.estimate_source == "estimator"}
     missed = {kind: sum(seq not in flown for first, end in ws for seq in range(first, end))
               for kind, ws in windows.items()}
     samples = {kind: sum(end - first for first, end in ws) for kind, ws in windows.items()}
-    tracking_m = flight.tracking_error_m(start)
-    print(f"samples without an estimator setpoint: {missed} of {samples}; tracking within {tracking_m * 100:.1f} cm")
+    worst_m = {kind: max(flight.tracking_error_m(first, end) for first, end in ws) for kind, ws in windows.items()}
+    print(f"samples without an estimator setpoint: {missed} of {samples}; worst tracking error of a window (cm): "
+          f"{ {k: round(v * 100, 1) for k, v in worst_m.items()} }")
     assert min(samples.values()) > 200, samples
-    assert missed["flood"] < 0.5 * samples["flood"], (missed, samples)
-    assert tracking_m < 0.2, "the hover at 1 m stays under control"
+    assert missed["flood"] <= missed["quiet"] + 3 * math.sqrt(missed["quiet"] + 1) + 0.05 * samples["flood"], \
+        (missed, samples)
+    assert worst_m["flood"] <= worst_m["quiet"] + 0.01, worst_m
 
 
 def test_kill_9_of_the_estimator_falls_back_within_3_periods_and_resumes_after_restart(flight):
@@ -274,20 +274,28 @@ def test_killing_the_hub_leaves_the_running_peers_talking(flight):
     hub_pid = flight.pid_of("hub")
     os.kill(hub_pid, signal.SIGKILL)
     killed_at = flight.latest_seq()
-    time.sleep(2.0)
-    after = [m for m in flight.probe.get("setpoint") if m.seq > killed_at]
-    assert len(after) >= 80, f"only {len(after)} setpoints in 2 s after the hub died"
+    flight.probe.wait_for("setpoint", lambda m: m.seq > killed_at + 100, 10.0)  # the world's next 2 s
+    after = [m for m in flight.probe.get("setpoint") if killed_at < m.seq <= killed_at + 100]
+    assert len(after) >= 80, f"only {len(after)} setpoints for the 100 samples after the hub died"
     local = [m.seq for m in after if m.estimate_source != "estimator"]
     assert not local, f"hub killed after sample {killed_at}; local ESO at samples {local}"
     assert flight.tracking_error_m(killed_at) < 0.05
 
 
 def test_ctrl_c_stops_everything_within_3_s_with_nothing_left_behind(flight):
+    """Ctrl-C reaches every process of the group, and the launcher's SIGTERM follows within milliseconds: a second
+    signal inside the first one's handler hung the recorder and the source for good (tests/process/test_signals.py)."""
     tree = [flight.proc.pid] + children_of(flight.proc.pid)
     assert len(tree) >= 5
+    names = {pid: open(f"/proc/{pid}/cmdline").read().replace("\0", " ")[-60:] for pid in tree}
+    n0 = len(flight.output)
     started = time.monotonic()
     os.killpg(flight.proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
-    flight.proc.wait(10)
+    try:
+        flight.proc.wait(10)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"not stopped in 10 s: {[names[p] for p in tree if os.path.exists(f'/proc/{p}')]}; "
+                             f"said since: {''.join(flight.output[n0:])[-2000:]}") from None
     elapsed = time.monotonic() - started
     assert elapsed < 3.0, f"took {elapsed:.2f} s"
     time.sleep(0.2)

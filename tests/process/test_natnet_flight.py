@@ -88,15 +88,21 @@ def test_a_rigid_body_lost_for_a_second_is_flagged_and_the_hover_goes_on(tmp_pat
     back = [line for line in lines if "tracked again after" in line]
     assert len(lost) == 1 and len(back) == 1, lines[-20:]
     gap_s = float(back[0].split("tracked again after ")[1].split(" s")[0])
-    assert 0.95 < gap_s < 1.1, back
     done = [line for line in lines if "done:" in line]
     assert len(done) == 1, lines[-10:]
     frames_without = int(done[0].split(" frames without")[0].split(", ")[-1])
-    assert 90 <= frames_without <= 110, done  # 100 Hz frames for 1 s
+    assert 98 <= frames_without <= 102, done  # the world's 100 Hz exposures of its lost second (world time 5-6 s)
+    # the lost second is the world's: on the wall clock it lasted as long as the world took for it (its truth's stamps
+    # at world time 5 and 6 s: longer than 1 s when a loaded machine slows the world); the source flagged that span,
+    # and no state came in it, within two frames and a control period
+    truth = flight.probe.get("truth")
+    world_s = next(m.stamp_s for m in truth if m.t_s >= 6.0) - next(m.stamp_s for m in truth if m.t_s >= 5.0)
     states = flight.probe.get("state")
     gaps = np.diff([m.stamp_s for m in states])
-    assert 0.95 < gaps.max() < 1.1 and np.sum(gaps > 0.1) == 1, "no state while it was lost, states before and after"
-    truth = flight.probe.get("truth")
+    print(f"lost for 1 s of world time = {world_s:.3f} s of wall time; flagged {gap_s:.3f} s; no state for "
+          f"{gaps.max():.3f} s")
+    assert abs(gap_s - world_s) < 0.04, (gap_s, world_s)
+    assert abs(gaps.max() - world_s) < 0.06 and np.sum(gaps > 0.1) == 1, "no state while it was lost, states before and after"
     assert not any(m.crashed for m in truth)
     assert abs(truth[-1].pos_enu_m[2] - 1.0) < 0.05, "hovering again at 1 m"
 

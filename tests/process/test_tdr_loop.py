@@ -3,8 +3,9 @@
 Fly the near-ground lemniscate under Neural-ESO with the base network while the recorder writes the
 flight; stop the recording; the trainer service trains a TDR network from the `.rrd` starting from
 the active network, certifies it, flies the recorded flight again with both networks (the prediction),
-stores it and offers it if it is predicted to improve; the estimator's gate puts it in shadow; it is
-promoted in flight; the lemniscate is flown again while the canary watches. ~110 s on two cores.
+stores it and offers it (forced: in this simulator's lemniscate there is nothing state-dependent left to learn, so
+a candidate is often predicted no better and withheld — the trainer's unit tests show that gate); the estimator's
+gate puts it in shadow; it is promoted in flight; the lemniscate is flown again while the canary watches.
 """
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ pytestmark = pytest.mark.slow  # ~100 s: the whole loop in real time
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("tdr")
-    report = fly_tdr_loop(hub=f"tcp/127.0.0.1:{free_port()}", workdir=str(workdir), log=lambda *_: None)
+    report = fly_tdr_loop(hub=f"tcp/127.0.0.1:{free_port()}", workdir=str(workdir), log=lambda *_: None,
+                          force_offer=True)
     print("\n".join(report.lines()))
     return report, workdir
 
@@ -40,8 +42,7 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     assert info["val_loss"] >= 0 and info["certificate"]["holds"] and info["certificate"]["margin"] > 0
     assert info["predicted"] == report.predicted and report.predicted["seconds"] > 25
     assert report.cycles_before_samples > 1000 and report.cycles_after_samples > 1000, "5 cycles each (1500 samples)"
-    if not report.offered:
-        return  # predicted to fly worse: nothing was swapped (test_the_loop_never_makes_the_flight_worse)
+    assert report.offered, report.trainer_summary
     # the total estimate is continuous: the step at the swap is no larger than the flight's usual steps
     assert report.f_hat_step_at_swap_mps2 <= report.f_hat_step_p99_mps2
     assert report.force_step_at_swap_n <= FORCE_STEP_LIMIT_N + 1e-9
@@ -52,22 +53,15 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     assert report.missed_setpoints <= 0.06 * report.states, report.missed_by_phase
 
 
-def test_the_loop_never_makes_the_flight_worse(loop):
-    """What the operator is promised: a candidate is offered only when the recorded flight flown again says
-    it improves, and once promoted the flight is not worse than the canary tolerates (or it was rolled back).
-    Whether TDR *improves* the lemniscate is not asserted: in this simulator there is nothing state-dependent
-    left to learn there (docs/method.md, "What the simulation shows"); the figures are printed."""
+def test_a_promoted_network_never_flies_worse_than_the_canary_tolerates(loop):
+    """What the operator is promised once a network is promoted: the flight is not worse than the canary tolerates,
+    or it was rolled back. Whether TDR *improves* the lemniscate is not asserted: in this simulator there is nothing
+    state-dependent left to learn there (docs/method.md, "What the simulation shows"); the figures are printed."""
     report, _ = loop
-    change = report.predicted["change"]
-    assert report.offered == (change < 0), (change, report.trainer_summary)
     # both lemniscates in the same world (restarted, same seed), begun at the same world time: the gusts they
     # meet are the same, so the difference is the network's (unpaired, one network's two runs differed by 24 %)
     first, second = report.lemniscate_start_t_s
     assert abs(second - first) <= 0.021, report.lemniscate_start_t_s
-    tolerated = 1.0 + CanaryConfig().margin
-    worse = report.rmse_after_cm > tolerated * report.rmse_before_cm
-    if report.offered:
-        assert not worse or "rolled back" in report.canary, (report.rmse_before_cm, report.rmse_after_cm,
-                                                             report.canary)
-    else:  # the base network flew both: the pairing's own residual
-        assert not worse, (report.rmse_before_cm, report.rmse_after_cm)
+    worse = report.rmse_after_cm > (1.0 + CanaryConfig().margin) * report.rmse_before_cm
+    assert report.canary.startswith("canary on segment"), report.canary  # a verdict
+    assert not worse or "rolled back" in report.canary, (report.rmse_before_cm, report.rmse_after_cm, report.canary)

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from cli.paper_px4 import free_px4_instance
+from cli.paper_px4 import free_px4_instance, release_px4_instance
 from runtime.client import command
 from sim.px4_sitl import missing_px4, px4_home
 from tests.busutil import REPO, NesoUp, free_port, peer, wait_for
@@ -25,15 +25,22 @@ class Px4Flight(NesoUp):
         old = dict(os.environ)
         # MAVSDK writes its cache under $HOME/.cache/mavsdk: a HOME of the test's own; PX4 stays where make setup put it
         os.environ.update(HOME=str(tmp), NESO_PX4_HOME=str(px4_home()))
+        self.instance = free_px4_instance()  # held by this test process until close()
         try:
             self.t0 = time.monotonic()
-            super().__init__("--vehicle", "px4", "--px4-instance", str(free_px4_instance()), "--hub", endpoint,
+            super().__init__("--vehicle", "px4", "--px4-instance", str(self.instance), "--hub", endpoint,
                              "--no-trainer", "--no-dashboard", "--recordings-dir", str(tmp / "recordings"), *extra,
                              bus=peer(endpoint), topics=TOPICS)
         finally:
             os.environ.clear()
             os.environ.update(old)
         self.recordings = tmp / "recordings"
+
+    def close(self, *, kill: bool = False) -> str:
+        try:
+            return super().close(kill=kill)
+        finally:
+            release_px4_instance(self.instance)
 
     def cli(self, *args: str) -> subprocess.CompletedProcess:
         """``neso ARGS`` as an operator types it, connected to this flight's hub."""

@@ -20,14 +20,6 @@ def _neso(*args: str, env: dict | None = None, timeout: float = 300.0) -> subpro
                           capture_output=True, text=True, timeout=timeout)
 
 
-def test_refused_in_one_line_when_px4_is_not_built(tmp_path):
-    done = _neso("--world", "px4", "--json", str(tmp_path / "r.json"),
-                 env=dict(os.environ, NESO_PX4_HOME=str(tmp_path / "none")), timeout=60)
-    assert done.returncode == 2, done.stdout + done.stderr
-    assert done.stdout.strip().splitlines() == [done.stdout.strip()] and "PX4 SITL is not built" in done.stdout
-    assert "Traceback" not in done.stderr and not (tmp_path / "r.json").exists()
-
-
 def test_the_paper_experiments_fly_on_px4_and_the_json_is_real(tmp_path):
     out, details = tmp_path / "paper-px4.json", tmp_path / "details.json"
     started = time.monotonic()  # MAVSDK caches under $HOME: a HOME of the test's own, PX4 where make setup put it
@@ -37,9 +29,12 @@ def test_the_paper_experiments_fly_on_px4_and_the_json_is_real(tmp_path):
     print(f"\n{done.stdout[-3000:]}\nreduced run: {time.monotonic() - started:.0f} s")
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     res, det = json.loads(out.read_text()), json.loads(details.read_text())
-    assert res["world"] == "px4" and res["px4_version"].startswith("v1.16.0") and res["gains"] == "paper"
     flights = det["px4_flights"]["paper"]
     assert len(flights) == 2 and all("failed" not in f for f in flights), flights
+    # the version PX4 itself reported in these flights (AUTOPILOT_VERSION), not a constant
+    assert all(f["autopilot"].startswith("PX4 v1.16.0 ") for f in flights), [f["autopilot"] for f in flights]
+    assert res["world"] == "px4" and res["px4_version"] == flights[0]["autopilot"].removeprefix("PX4 ")
+    assert res["gains"] == "paper"
     for f in flights:  # each flight happened: PX4 answered every sensor period of it in the air, and armed itself
         assert f["airborne_exchanges"] > 5 * 50 * 10 and f["exchanges"] > f["airborne_exchanges"]
         assert f["link_dropped"] == 0 and f["armed_after_s"] > 0 and f["airborne_at_start_s"] > f["armed_after_s"] / 2
@@ -52,7 +47,8 @@ def test_the_paper_experiments_fly_on_px4_and_the_json_is_real(tmp_path):
         assert list(px4["methods"]) == ["neural_eso"]
         for method in ("neural_eso",):
             (ours,) = px4["methods"][method]["trials"]
-            assert ours is not None and math.isfinite(ours) and 0.0 < ours < 50.0, (scenario, method, ours)
+            # N-ESO as the method flies: the README's figures are 0.3-1.5 cm (0.58 and 1.45 cm in this reduced run)
+            assert ours is not None and math.isfinite(ours) and 0.0 < ours < 3.0, (scenario, method, ours)
             assert ours != builtin["methods"][method]["trials"][0]  # flown in another world, not copied
             sat = res["saturation_percent"][scenario][method]["mean"]
             assert sat is not None and 0.0 <= sat <= 100.0

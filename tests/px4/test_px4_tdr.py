@@ -1,6 +1,8 @@
-"""`neso demo tdr --world px4`: the Total Disturbance Retraining loop with real PX4 v1.16.0 SITL in the loop (a flight
-of its own, ~3.5 min): take-off as an operator does, the lemniscate recorded, a TDR network trained from the
-recording, certified, predicted, offered only if predicted better, promoted in flight, the lemniscate again."""
+"""`neso demo tdr --world px4 --force-offer`: the Total Disturbance Retraining loop with real PX4 v1.16.0 SITL in the
+loop (a flight of its own, ~100 s): take-off as an operator does, the lemniscate recorded, a TDR network trained from
+the recording, certified, predicted, offered (forced: whether a candidate predicted worse is withheld is the
+trainer's unit test, and in this world's lemniscate there is often nothing left to learn), promoted in flight with
+the swap sample answered, the lemniscate again under the canary."""
 from __future__ import annotations
 
 import json
@@ -11,9 +13,10 @@ import sys
 from tests.busutil import REPO
 
 
-def test_the_tdr_loop_flies_with_px4_in_the_loop(tmp_path):
+def test_a_network_retrained_in_the_loop_is_promoted_in_flight_with_px4_flying(tmp_path):
     report_path = tmp_path / "report.json"
     done = subprocess.run([sys.executable, "-m", "cli.main", "demo", "tdr", "--world", "px4", "--epochs", "30",
+                           "--force-offer",
                            "--dashboard-port", "0", "--workdir", str(tmp_path / "work"), "--json", str(report_path)],
                           cwd=REPO, capture_output=True, text=True, timeout=600)
     print(done.stdout[-3000:])
@@ -23,8 +26,8 @@ def test_the_tdr_loop_flies_with_px4_in_the_loop(tmp_path):
     assert math.isfinite(report["rmse_before_cm"]) and math.isfinite(report["rmse_after_cm"])
     assert report["cycles_before_samples"] >= 1400 and report["cycles_after_samples"] >= 1400  # five 6 s cycles
     assert " done: " in report["trainer_summary"] and report["certificate"].get("holds") is True
-    predicted = report["predicted"]["change"]
-    assert report["offered"] == (predicted < 0), (report["offered"], predicted)  # offered only if predicted better
-    assert report["missed_setpoints"] <= 0.01 * max(report["states"], 1) or not report["offered"], report["missed_setpoints"]
-    if report["offered"]:
-        assert report["swap_answered"] and report["canary"], report
+    assert math.isfinite(report["predicted"]["change"]) and report["offered"], report["trainer_summary"]
+    assert report["swap_answered"], "the swap sample answered on time"
+    assert report["canary"].startswith("canary on segment") and report["canary"].endswith(("kept", "rolled back")), \
+        report["canary"]  # the canary's verdict, not "armed at the promotion"
+    assert report["missed_setpoints"] <= 0.01 * report["states"], (report["missed_setpoints"], report["states"])
