@@ -273,7 +273,8 @@ class EstimatorCore:
 
     # -- network hot swap ---------------------------------------------------------------
     def check_offer(self, path: str) -> GateVerdict:
-        """Read and gate a candidate file (touches no estimator state but the active network)."""
+        """Read and gate a candidate file (touches no estimator state but the active network; warms the certificate
+        cache with the candidate's)."""
         try:
             size = Path(path).stat().st_size
             if size > MAX_NETWORK_FILE_BYTES:
@@ -281,7 +282,10 @@ class EstimatorCore:
             data = Path(path).read_bytes()
         except OSError as exc:
             return GateVerdict(None, f"cannot read {path}: {exc.strerror or exc}")
-        return gate(data, active=self.estimator.network, vehicle=self.vehicle)
+        verdict = gate(data, active=self.estimator.network, vehicle=self.vehicle)
+        if verdict.passed:  # its certificate's SDP solved here, outside the node lock (0.4-1 s: the loop must not wait)
+            self.certificate_of(verdict.network)
+        return verdict
 
     def accept(self, verdict: GateVerdict, path: str, predicted: dict | None = None) -> str:
         """Put a passed candidate in shadow (replacing any earlier candidate). ``predicted``: the
