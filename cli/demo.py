@@ -61,7 +61,8 @@ def add_parser(subparsers) -> None:
     t.add_argument("--json", default=None, help="write the report here as JSON")
     t.add_argument("--seed", type=int, default=1, help="the simulated world's seed (gusts, mocap noise)")
     t.add_argument("--force-offer", action="store_true",
-                   help="offer and promote the candidate even if predicted to fly worse (to see what it does)")
+                   help="offer and promote the candidate even if predicted to fly worse or it learned nothing (to see what "
+                        "it does; the certificate still gates it)")
     t.add_argument("--world", default="builtin", choices=("builtin", "px4"),
                    help="builtin: the world's own inner loop, the two lemniscates paired (the world restarts with "
                         "its seed); px4: real PX4 SITL flies the world (`neso up --vehicle px4`), taken off as an "

@@ -42,7 +42,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--epochs", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-offer", action="store_false", dest="offer", help="store in the registry only")
-    p.add_argument("--force-offer", action="store_true", help="offer even if predicted to fly worse")
+    p.add_argument("--force-offer", action="store_true", help="offer even if predicted to fly worse or it learned nothing "
+                   "(the estimator's certificate still gates it)")
     p.add_argument("--promote", action="store_true", help="promote the candidate once it has been in shadow")
     p.add_argument("--force", action="store_true", help="with --promote: even if uncertified or predicted worse")
     p.add_argument("--shadow", type=float, default=2.0, help="seconds in shadow before --promote (default 2)")

@@ -14,15 +14,15 @@ and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
   recipe's units (default: for physical recipes the largest bound the certificate allows for the
   gains the vehicle flies, as the estimator reports them, times the recipe's fraction; for the
   paper's, the active network's L_N); ``epochs`` (100); ``offer`` (true: send the result to the
-  estimator's gate); ``force_offer`` (offer even when predicted to fly worse); ``seed`` (0).
+  estimator's gate); ``force_offer`` (offer even when predicted to fly worse or when it learned nothing); ``seed`` (0).
 
 Before it offers, the trainer flies the recorded flights again in closed loop
 (:mod:`sim.counterfactual`: the recorded reference, the disturbance reconstructed from the
 recording injected, the vehicle's recorded mass and the thrust delay and lag identified on the same
 recordings, whatever the label) with the active network and with the candidate on the same conditions;
 the predicted z RMSE change goes with the offer, into the registry and onto the dashboard. A
-candidate predicted to fly worse is stored but not offered unless ``force_offer``; a candidate whose
-validation loss is not below that of predicting the mean has learned nothing and is never offered.
+candidate predicted to fly worse, or whose validation loss is not below that of predicting the mean (it learned
+nothing), is stored but not offered unless ``force_offer``.
 - ``status``: what the worker is doing and the last result.
 
 A retried ``train`` is queued once (the node answers a repeated request id with the first answer).
@@ -263,12 +263,17 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
 
 def withheld_because(val_loss_vs_mean: float, change, force_offer: bool) -> str:
     """Why a candidate is not offered (empty: offer it). One whose validation loss is not below that of
-    predicting the mean learned nothing and is never offered; one predicted to fly worse only with
-    ``force_offer``."""
+    predicting the mean learned nothing, and one predicted to fly worse: neither is offered unless ``force_offer``
+    (an operator trying the swap itself; the estimator's certificate gate and the canary still decide). One whose
+    validation loss is not finite (training diverged) never is."""
+    if not math.isfinite(val_loss_vs_mean):
+        return f"not offered: its validation loss is {val_loss_vs_mean} (training diverged); force_offer does not change that"
+    if force_offer:
+        return ""
     if not val_loss_vs_mean < 1.0:
         return (f"not offered: its validation loss is {val_loss_vs_mean:.3f} × that of predicting the mean (it learned "
-                "nothing the observer does not already remove); force_offer does not change that")
-    if isinstance(change, float) and change >= 0 and not force_offer:
+                "nothing the observer does not already remove); train with force_offer=true to offer it anyway")
+    if isinstance(change, float) and change >= 0:
         return (f"not offered: predicted to fly worse ({change * 100:+.0f} % z RMSE on the recorded flight); train with "
                 "force_offer=true to offer it anyway")
     return ""

@@ -107,13 +107,17 @@ def test_jobs_that_cannot_be_done_are_refused_with_the_reason(rrd, tmp_path):
         train_job(job, config, "uav2", ACTIVE)
 
 
-def test_a_candidate_that_learned_nothing_is_never_offered_even_by_force():
+def test_a_candidate_that_learned_nothing_is_offered_only_by_force_and_a_diverged_one_never():
     from services.trainer import withheld_because
 
     assert withheld_because(0.4, -0.1, False) == ""
     assert "predicted to fly worse" in withheld_because(0.4, 0.05, False)
     assert withheld_because(0.4, 0.05, True) == ""
-    for vs_mean in (1.0, 1.7, float("nan")):
-        for force in (False, True):
-            why = withheld_because(vs_mean, -0.2, force)
-            assert why.startswith("not offered") and "predicting the mean" in why
+    for vs_mean in (1.0, 1.7):
+        why = withheld_because(vs_mean, -0.2, False)
+        assert why.startswith("not offered") and "predicting the mean" in why and "force_offer=true" in why
+        assert withheld_because(vs_mean, -0.2, True) == ""
+    for force in (False, True):
+        assert "training diverged" in withheld_because(float("nan"), -0.2, force)
+
+
