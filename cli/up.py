@@ -70,6 +70,10 @@ def add_parser(subparsers) -> None:
                    help="--mocap natnet: frame rate in Hz, 100-360 (0: the world's mocap model's, 100 Hz)")
     p.add_argument("--natnet-lost", default=src.natnet.lost,
                    help="--mocap natnet: world-time windows with the rigid body untracked, 'start:duration,...' in s")
+    p.add_argument("--natnet-jitter", type=float, default=src.natnet.jitter_ms,
+                   help="--mocap natnet: std of each frame's send time in ms (half-normal: frames only ever late)")
+    p.add_argument("--natnet-version", default=src.natnet.version, choices=("3.0", "3.1", "4.0", "4.1"),
+                   help="--mocap natnet: the NatNet version the simulated Motive speaks")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
@@ -129,7 +133,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
     if role == "source" and args.mocap == "natnet":
         specific += ["--mocap-stream", "natnet", "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost",
-                     args.natnet_lost]
+                     args.natnet_lost, "--natnet-jitter", str(args.natnet_jitter), "--natnet-version",
+                     args.natnet_version]
         if shared_motive(args):  # one Motive streams every vehicle's rigid body, named after the vehicle
             specific += ["--natnet-port", str(args.natnet_port), "--natnet-feed", str(motive_feed_port(args)),
                          "--natnet-body-id", str(index + 1), "--rigid-body", vehicle,
@@ -283,7 +288,8 @@ def motive_argv(args) -> tuple[str, ...]:
     return python_module_argv("sim.natnet_motive", "--port", str(args.natnet_port), "--feed-port",
                               str(motive_feed_port(args)), "--bodies", ",".join(args.names),
                               "--rate", str(motive_rate_hz(args)), "--up-axis", args.natnet_up_axis,
-                              "--seed", str(args.seed))
+                              "--seed", str(args.seed), "--jitter-ms", str(args.natnet_jitter),
+                              "--natnet-version", args.natnet_version)
 
 
 def px4_argv(instance: int, vehicle: str) -> tuple[str, ...]:
@@ -301,9 +307,9 @@ def run(args) -> int:
         print(f"neso up: --vehicle {args.vehicle} runs in real time only (MAVSDK and the MAVLink link keep their own "
               "clock)", flush=True)
         return 2
-    if args.mocap == "natnet" and (args.lockstep or args.vehicle != "direct"):
-        print("neso up: --mocap natnet runs in real time with --vehicle direct only (the stream keeps its own clock)",
-              flush=True)
+    if args.mocap == "natnet" and (args.lockstep or args.vehicle == "px4"):
+        print("neso up: --mocap natnet runs in real time with --vehicle direct or mavlink only (the stream keeps its "
+              "own clock; PX4 SITL steps the world itself)", flush=True)
         return 2
     if args.vehicle == "px4":
         from sim.px4_sitl import missing_px4
@@ -322,7 +328,7 @@ def run(args) -> int:
     if args.mocap == "natnet":
         bodies = f"one Motive streaming rigid bodies {vehicles}" if shared_motive(args) else "a simulated Motive"
         print(f"  motion capture:   NatNet from {bodies} on 127.0.0.1:{args.natnet_port}, "
-              f"{args.natnet_up_axis}-up, read by the motioncapture optitrack client", flush=True)
+              f"{args.natnet_up_axis}-up, NatNet {args.natnet_version}, read by the source's NatNet client", flush=True)
     loop_cpus, other_cpus = cpu_sets(isolating(args))
     if loop_cpus:
         print(f"  CPUs:             loop (hub, source, estimator, controller, px4_gateway) on {list(loop_cpus)}, "

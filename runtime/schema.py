@@ -297,7 +297,11 @@ _ACC = _vector(3, LIMIT_MPS2)
 @dataclass(frozen=True, slots=True)
 class StateMsg(Message):
     """A state sample (ENU, SI). ``source``: ``sim``, ``mocap``, ``replay`` (published again from a
-    recording) or ``px4`` (PX4's own estimate, imported from its flight log)."""
+    recording) or ``px4`` (PX4's own estimate, imported from its flight log). ``t_s``: the source's clock (the
+    world's time; a motion-capture frame's own capture time); ``capture_stamp_s``: the pose's capture on the
+    source machine's monotonic clock
+    (``stamp_s``'s; 0: unknown), so ``stamp_s - capture_stamp_s`` is how old the pose was when published (the
+    world's or Motive's exposure to the bus), which the PX4 gateway carries into ODOMETRY's ``time_usec``."""
 
     TYPE: ClassVar[str] = "state"
     seq: int = f(_SEQ)
@@ -309,6 +313,7 @@ class StateMsg(Message):
     pitch_rad: float = f(_ANGLE)
     yaw_rad: float = f(_ANGLE)
     source: str = f(_text(STATE_SOURCES))
+    capture_stamp_s: float = f(_STAMP, default=0.0)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,6 +1,13 @@
-"""The source's motion-capture paths (:mod:`services.source` chooses them): a mocap system read through the
-``motioncapture`` library (:func:`run_mocap`), and the simulated world behind a simulated Motive streaming NatNet
-on loopback, read back exactly as in a lab (:func:`run_sim_natnet`)."""
+"""The source's motion-capture paths (:mod:`services.source` chooses them): a mocap system (:func:`run_mocap`:
+OptiTrack through this project's NatNet client, :mod:`services.natnet_client`, with Motive's own frame times;
+Vicon, Qualisys, VRPN, ... through the ``motioncapture`` library, stamped on arrival), and the simulated world
+behind a simulated Motive streaming NatNet on loopback, read back exactly as in a lab (:func:`run_sim_natnet`).
+
+Before the node joins the bus the NatNet server is asked what it streams (:func:`natnet_offer`, retried): nobody
+answering is one line and exit 1, a ``--rigid-body`` it does not stream one line naming those it does and exit 2,
+for every NatNet version the client reads. What it said is the source's read-only description (its parameters:
+``kind``, ``natnet_version``, ``server``, ``server_app``, ``rigid_body``), which every recording keeps.
+"""
 from __future__ import annotations
 
 import contextlib
@@ -11,17 +18,45 @@ from dataclasses import replace
 
 import numpy as np
 
-from flight.source import MocapSource, SourceConfig
+from flight.mocap_time import CaptureClock, StreamStats
+from flight.source import MocapConfig, MocapSource, SourceConfig
 from runtime.schema import SetpointMsg
 
 
-def run_sim_natnet(node, config: SourceConfig) -> None:
-    """The world in a child process (services/natnet_world.py) streams NatNet on loopback; this process
-    reads it exactly as in a lab (:func:`run_mocap`, the motioncapture optitrack client), forwards the
-    setpoints to the world and publishes the world's truth."""
+def natnet_offer(mc: MocapConfig):
+    """What the NatNet server at ``--mocap-host``:``--mocap-port`` streams (:func:`services.natnet_client.query_server`),
+    with ``--rigid-body`` among its rigid bodies; SystemExit with one line otherwise (exit 1: nobody answered or
+    a version not read here; exit 2: not that rigid body)."""
+    from services.natnet_client import NatNetUnavailable, query_server
+
+    where = f"{mc.hostname}:{mc.port}"
+    try:
+        offer = query_server(mc.hostname, mc.port)
+    except NatNetUnavailable as exc:
+        print(f"source: no NatNet server answered at {where} ({exc}); is Motive streaming (Edit → Settings → "
+              "Streaming: Enable) and is this the command port?", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
+    streamed = list(offer.bodies.values())
+    if mc.rigid_body not in streamed:
+        print(f"source: rigid body {mc.rigid_body!r} is not streamed by the NatNet server at {where}; it streams "
+              f"{streamed} (--rigid-body, or Motive's Assets pane: the rigid body's name and Streaming on)",
+              file=sys.stderr, flush=True)
+        raise SystemExit(2)
+    return offer
+
+
+def natnet_description(offer, rigid_body: str, **more: str) -> dict[str, str]:
+    """The source's description of a NatNet stream (its read-only parameters, recorded with every flight)."""
+    info = offer.info
+    return {"kind": "natnet", "natnet_version": offer.version, "server": f"{offer.host}:{offer.port}",
+            "server_app": f"{info.app_name} {'.'.join(map(str, info.app_version))}", "rigid_body": rigid_body, **more}
+
+
+def start_world(config: SourceConfig):
+    """The simulated world with its simulated Motive in a child process (services/natnet_world.py): (process,
+    pipe, the Motive's command port)."""
     import multiprocessing
 
-    from runtime.schema import TruthMsg
     from services.natnet_world import run_world
 
     ctx = multiprocessing.get_context("spawn")
@@ -31,6 +66,21 @@ def run_sim_natnet(node, config: SourceConfig) -> None:
     if not conn.poll(60.0):
         raise SystemExit("source: the simulated Motive did not start within 60 s")
     _, port = conn.recv()
+    return world, conn, port
+
+
+def world_mocap(config: SourceConfig, port: int) -> MocapConfig:
+    """How this source reads the simulated Motive on loopback: as a lab reads its Motive."""
+    return replace(config.mocap, type="optitrack", hostname="127.0.0.1", port=port, interface="127.0.0.1",
+                   frame={"y": "y_up", "z": "enu"}[config.natnet.up_axis])
+
+
+def run_sim_natnet(node, config: SourceConfig, world, offer) -> None:
+    """The world in a child process (:func:`start_world`) streams NatNet on loopback; this process reads it exactly
+    as in a lab (:func:`run_mocap`), forwards the setpoints to the world and publishes the world's truth."""
+    from runtime.schema import TruthMsg
+
+    process, conn, port = world
     put_truth = node.publisher("truth")
     send_lock = threading.Lock()
 
@@ -47,87 +97,114 @@ def run_sim_natnet(node, config: SourceConfig) -> None:
 
     node.subscribe("setpoint", on_setpoint)
     threading.Thread(target=relay_truth, name="truth", daemon=True).start()
-    mocap = replace(config.mocap, type="optitrack", hostname="127.0.0.1", port=port, interface="127.0.0.1",
-                    frame={"y": "y_up", "z": "enu"}[config.natnet.up_axis])
-    node.event("info", f"state from NatNet: simulated world → simulated Motive (NatNet 4.1, 127.0.0.1:{port}, "
-                       f"{config.natnet.up_axis}-up) → motioncapture optitrack client → this source")
+    node.event("info", f"state from NatNet: simulated world → simulated Motive (NatNet {offer.version}, "
+                       f"127.0.0.1:{port}, {config.natnet.up_axis}-up) → this source's NatNet client")
     n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
     try:
-        run_mocap(node, replace(config, mocap=mocap), n_total=n_total)
+        run_mocap(node, replace(config, mocap=world_mocap(config, port)), offer=offer, n_total=n_total)
     finally:
         with send_lock, contextlib.suppress(OSError):  # the world may have gone already
             conn.send_bytes(b"")
-        world.join(timeout=3.0)
-        if world.is_alive():
-            world.terminate()
+        process.join(timeout=3.0)
+        if process.is_alive():
+            process.terminate()
 
 
-def natnet_rigid_bodies(host: str, port: int, timeout_s: float = 2.0) -> tuple[tuple[int, ...], list[str]]:
-    """(NatNet version, rigid-body names) a NatNet server at ``host:port`` streams: asked as its clients
-    ask (NAT_CONNECT, NAT_REQUEST_MODELDEF). ``SystemExit`` with one line when nobody answers."""
-    import socket
+class _NatNetFrames:
+    """Frames of a NatNet server through :class:`services.natnet_client.FrameStream`, as (capture monotonic s,
+    arrival monotonic s, pose or None when the rigid body is not tracked); frames out of order are counted and
+    skipped (:class:`flight.mocap_time.StreamStats`)."""
 
-    from sim import natnet
+    def __init__(self, offer, mc: MocapConfig, stats: StreamStats) -> None:
+        from services.natnet_client import FrameStream
 
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.settimeout(timeout_s)
-        try:
-            s.sendto(natnet.packet(natnet.NAT_CONNECT), (host, port))
-            info = natnet.parse_server_info(natnet.split(s.recv(65536))[1])
-            s.sendto(natnet.packet(natnet.NAT_REQUEST_MODELDEF), (host, port))
-            message_id, payload = natnet.split(s.recv(65536))
-            if message_id != natnet.NAT_MODELDEF:
-                raise natnet.NatNetError(f"message {message_id} in answer to NAT_REQUEST_MODELDEF")
-        except (OSError, natnet.NatNetError) as exc:
-            raise SystemExit(f"source: no NatNet server answered at {host}:{port} ({exc}); is Motive streaming "
-                             "(Edit → Settings → Streaming: Enable) and is this the command port?") from None
-    names = list(natnet.parse_rigid_body_names(payload).values()) if info.natnet_version[:2] == (4, 1) else []
-    return info.natnet_version, names
+        self.stream = FrameStream(offer, mc.interface)
+        self.body_id = next(i for i, n in offer.bodies.items() if n == mc.rigid_body)
+        self.clock_hz = float(offer.info.clock_hz)
+        self.capture = CaptureClock()
+        self.stats = stats
+
+    def next(self, timeout_s: float):
+        got = self.stream.read(timeout_s)
+        if got is None:
+            return None
+        frame, arrival_s = got
+        mid_s, transmit_s = frame.mid_exposure_ticks / self.clock_hz, frame.transmit_ticks / self.clock_hz
+        capture_s = self.capture.capture_s(arrival_s, mid_s, transmit_s)
+        if not self.stats.add(capture_s, arrival_s, max(0.0, transmit_s - mid_s)):
+            return "late"
+        body = next((b for b in frame.bodies if b.id == self.body_id and b.tracked), None)
+        if body is None:
+            return capture_s, arrival_s, None
+        qx, qy, qz, qw = body.quat_xyzw
+        return capture_s, arrival_s, (np.asarray(body.pos_m), (qw, qx, qy, qz))
+
+    def close(self) -> None:
+        self.stream.close()
 
 
-def run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> None:
-    """Frames from the motioncapture library on a thread of their own (``waitForNextFrame`` blocks); this
-    thread watches the stream: no frame for ``stream_timeout_s`` is a stopped stream, frames without the
-    rigid body are a lost rigid body (each an event when it starts and when it ends, frames counted in
-    health). ``n_total``: stop after that many states."""
-    import motioncapture
+class _LibraryFrames:
+    """Frames of the ``motioncapture`` library (``waitForNextFrame`` blocks until one; no frame times: stamped on
+    arrival)."""
 
+    def __init__(self, mc: MocapConfig, stats: StreamStats) -> None:
+        import motioncapture
+
+        self.mc = motioncapture.connect(mc.type, {"hostname": mc.hostname})
+        self.name = mc.rigid_body
+        self.stats = stats
+
+    def next(self, timeout_s: float):
+        self.mc.waitForNextFrame()
+        now = time.monotonic()
+        body = self.mc.rigidBodies.get(self.name)
+        self.stats.add(now, now, 0.0)
+        if body is None:
+            return now, now, None
+        q = body.rotation
+        return now, now, (np.asarray(body.position), (q.w, q.x, q.y, q.z))
+
+    def close(self) -> None:
+        pass
+
+
+def run_mocap(node, config: SourceConfig, *, offer=None, n_total: int | None = None) -> None:
+    """Frames on a thread of their own; this thread watches the stream: no frame for ``stream_timeout_s`` is a
+    stopped stream, frames without the rigid body are a lost rigid body (each an event when it starts and when it
+    ends, frames counted in health). ``offer``: the NatNet server's (:func:`natnet_offer`) for OptiTrack.
+    ``n_total``: stop after that many states. The stream's figures (rate, latency, jitter, gaps: 
+    :class:`flight.mocap_time.StreamStats`) go into the health counters every second."""
     mc_config = config.mocap
     core = MocapSource(mc_config, config.rate_hz, clock=time.monotonic)
     put_state = node.publisher("state")
     name = mc_config.rigid_body
-    where = f"{mc_config.hostname}:{mc_config.port}" if mc_config.type == "optitrack" else mc_config.hostname
-    options = {"hostname": mc_config.hostname}
-    if mc_config.type == "optitrack":
-        version, streamed = natnet_rigid_bodies(mc_config.hostname, mc_config.port)
-        if streamed and name not in streamed:
-            print(f"source: rigid body {name!r} is not streamed by the NatNet server at {where}; it streams "
-                  f"{streamed} (--rigid-body, or Motive's Assets pane: the rigid body's name and Streaming on)",
-                  file=sys.stderr, flush=True)
-            raise SystemExit(2)
-        node.log(f"NatNet {'.'.join(map(str, version))} at {where}, rigid bodies {streamed}")
-        options.update(port_command=str(mc_config.port), interface_ip=mc_config.interface)
+    where = f"{mc_config.hostname}:{mc_config.port}" if offer is not None else mc_config.hostname
+    stats = StreamStats()
+    if offer is not None:
+        node.log(f"NatNet {offer.version} at {where} ({offer.tries} {'query' if offer.tries == 1 else 'queries'}), "
+                 f"rigid bodies {list(offer.bodies.values())}")
     node.log(f"connecting to {mc_config.type} at {where}, rigid body {name!r}, frame {mc_config.frame}")
-    mc = motioncapture.connect(mc_config.type, options)
+    frames = _NatNetFrames(offer, mc_config, stats) if offer is not None else _LibraryFrames(mc_config, stats)
     seen = [0]
     watch = {"last_frame_s": time.monotonic(), "stopped_since": None, "lost_since": None, "lost_frames": 0}
-
     stopping = [False]
 
     def read_frames() -> None:
         while not node.stopping and not stopping[0]:
-            mc.waitForNextFrame()
+            got = frames.next(0.1)
+            if got is None or stopping[0]:
+                continue
             now = time.monotonic()
-            body = mc.rigidBodies.get(name)
-            if stopping[0]:
-                return
             with node.lock:
                 seen[0] += 1
                 watch["last_frame_s"] = now
                 if watch["stopped_since"] is not None:
                     node.event("info", f"mocap stream from {where} back after {now - watch['stopped_since']:.2f} s")
                     watch["stopped_since"] = None
-                if body is None:
+                if got == "late":
+                    continue
+                capture_s, _, pose = got
+                if pose is None:
                     if core.seq >= 0:
                         watch["lost_frames"] += 1
                         node.stats.count("tracking_lost_frames")
@@ -139,16 +216,18 @@ def run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> None
                 if watch["lost_since"] is not None:
                     node.event("info", f"rigid body {name!r} tracked again after {now - watch['lost_since']:.2f} s")
                     watch["lost_since"] = None
-                q = body.rotation
-                state = core.frame(now, np.asarray(body.position), (q.w, q.x, q.y, q.z))
+                state = core.frame(capture_s, *pose)
                 if state is not None:
                     put_state(state)
                     node.stats.output(time.monotonic() - state.stamp_s)
 
-    kind = f"{mc_config.type} (NatNet {'.'.join(map(str, version[:2]))} at {where})" if mc_config.type == "optitrack" \
-        else mc_config.type
+    kind = f"{mc_config.type} (NatNet {offer.version} at {where})" if offer is not None else mc_config.type
 
     def status() -> str:
+        for key, value in stats.summary().items():
+            node.stats.set_counter(key, value)
+        node.stats.set_counter("rigid_body_tracked", float(core.seq >= 0 and watch["lost_since"] is None
+                                                           and watch["stopped_since"] is None))
         if watch["stopped_since"] is not None:
             return f"mocap {kind}: STREAM STOPPED {time.monotonic() - watch['stopped_since']:.1f} s ({seen[0]} frames)"
         if core.seq < 0:
@@ -169,5 +248,7 @@ def run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> None
                 node.event("warning", f"mocap stream from {where} stopped: no frame for {silent_s:.2f} s; no state "
                                       "until it is back")
     stopping[0] = True
-    reader.join(timeout=1.0)  # it leaves at its next frame; a stopped stream leaves it blocked in the library (a daemon)
-    node.log(f"done: {seen[0]} frames, {core.seq + 1} states, {watch['lost_frames']} frames without {name!r}")
+    reader.join(timeout=1.0)  # NatNet: within 0.1 s; the library's reader stays blocked on a stopped stream (a daemon)
+    frames.close()
+    node.log(f"done: {seen[0]} frames, {core.seq + 1} states, {watch['lost_frames']} frames without {name!r}, "
+             f"{stats.out_of_order} out of order")

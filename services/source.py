@@ -32,31 +32,53 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     config = config_from_args(args)
-    node = Node("source", vehicle=args.vehicle, bus=bus, config=config)
-    if config.backend == "mocap":
-        frame_matrix(config.mocap.frame)  # refuse a bad frame before joining the bus
-        from services.mocap_source import run_mocap
 
-        return run_node(node, lambda n: run_mocap(n, config))
+    def node(description: dict[str, str]):
+        return Node("source", vehicle=args.vehicle, bus=bus, config=config, params=description_params(description))
+
+    if config.backend == "mocap":
+        from services.mocap_source import natnet_description, natnet_offer, run_mocap
+
+        frame_matrix(config.mocap.frame)  # refused before joining the bus, as are a server that does not answer
+        offer = natnet_offer(config.mocap) if config.mocap.type == "optitrack" else None  # and a wrong rigid body
+        description = (natnet_description(offer, config.mocap.rigid_body) if offer is not None else
+                       {"kind": config.mocap.type, "server": config.mocap.hostname, "rigid_body": config.mocap.rigid_body})
+        return run_node(node(description), lambda n: run_mocap(n, config, offer=offer))
     if config.mocap_stream == "natnet":
         problem = natnet_refusal(config)  # refused before joining the bus: one line, exit 2
         if problem:
             print(f"source: {problem}", file=sys.stderr, flush=True)
             raise SystemExit(2)
-        from services.mocap_source import run_sim_natnet
+        from services.mocap_source import natnet_description, natnet_offer, run_sim_natnet, start_world, world_mocap
 
-        return run_node(node, lambda n: run_sim_natnet(n, config))
+        world = start_world(config)
+        offer = natnet_offer(world_mocap(config, world[2]))
+        description = natnet_description(offer, config.mocap.rigid_body, scenario=config.scenario, link=config.link,
+                                         world="simulated (sim/natnet_server.py)")
+        return run_node(node(description), lambda n: run_sim_natnet(n, config, world, offer))
+    description = {"kind": "sim", "scenario": config.scenario, "link": config.link}
     if config.link == "mavlink":
         if config.lockstep:
             raise SystemExit("source: --link mavlink runs in real time only (MAVSDK streams on its own clock)")
-        return run_node(node, lambda n: _run_sim_mavlink(n, config))
+        return run_node(node(description), lambda n: _run_sim_mavlink(n, config))
     if config.link == "px4":
         if config.lockstep:
             raise SystemExit("source: --link px4 runs in real time only (PX4 and MAVSDK keep wall-clock timeouts)")
         from services.px4_world import px4_in_the_loop
 
-        return run_node(node, lambda n: _run_sim(n, config, world=lambda sim: px4_in_the_loop(n, config, sim)))
-    return run_node(node, lambda n: _run_sim(n, config))
+        return run_node(node(description),
+                        lambda n: _run_sim(n, config, world=lambda sim: px4_in_the_loop(n, config, sim)))
+    return run_node(node(description), lambda n: _run_sim(n, config))
+
+
+def description_params(description: dict[str, str]):
+    """Where the states come from, as the source's read-only parameters (``neso params get source``; the recorder
+    keeps them with every flight): each a text parameter whose only allowed value is its own."""
+    from runtime.params import Param, ParamSet
+
+    specs = tuple(Param(k, str(v), str, "where the states come from (read only)", choices=(str(v),))
+                  for k, v in description.items())
+    return ParamSet(specs, check=lambda _: "the source's description is read only")
 
 
 def _run_sim(node, config: SourceConfig, world=None) -> None:
@@ -211,8 +233,8 @@ def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) ->
 
 def natnet_refusal(config: SourceConfig) -> str:
     """Why ``--mocap-stream natnet`` cannot run with ``config`` (one line), or ""."""
-    if config.lockstep or config.link == "mavlink":
-        return "--mocap-stream natnet runs in real time with --link direct only"
+    if config.lockstep or config.link == "px4":
+        return "--mocap-stream natnet runs in real time with --link direct or mavlink only"
     try:
         config.natnet.lost_windows()
     except ValueError as exc:
