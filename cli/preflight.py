@@ -62,5 +62,20 @@ def run(args) -> int:
 
 
 def check(args) -> int:
-    print("neso preflight: not built yet")
-    return 2
+    """Ask the vehicle's px4_gateway for a fresh verdict and print it; 0 go, 1 no-go, 2 nobody answered."""
+    from cli.busargs import bus_from_args, refusal_hint
+    from runtime.bus import open_session
+    from runtime.client import ServiceUnavailable, command
+    from runtime.schema import Keys
+
+    with open_session(bus_from_args(args)) as session:
+        try:
+            reply = command(session, Keys(args.vehicle), "px4_gateway", "preflight", timeout_s=args.timeout)
+        except ServiceUnavailable:
+            print(f"neso preflight: no px4_gateway of vehicle {args.vehicle!r} answered within {args.timeout:g} s"
+                  f"{refusal_hint(args)}: start it (`neso up --vehicle px4|mavlink`, or `neso run px4_gateway "
+                  "--mavlink …` against a vehicle)", flush=True)
+            return 2
+    print(f"preflight of vehicle {args.vehicle} (the px4_gateway's checks; it refuses to arm on a NO-GO):")
+    print(reply.message, flush=True)
+    return 0 if reply.ok else 1

@@ -345,6 +345,9 @@ def run(args) -> int:
 
         print(f"  controller gains: {controller_gains(args)} (kp, kd {GAIN_SETS[controller_gains(args)]}; --gains paper: "
               "the paper's)", flush=True)
+    if args.vehicle in ("mavlink", "px4"):
+        print(f"  preflight:        neso preflight{flag}  (the px4_gateway checks the vehicle every second and refuses "
+              "`arm` on a NO-GO)", flush=True)
     print(f"  live parameters:  neso params get estimator{flag} | neso params set estimator pathway=eso{flag}", flush=True)
     print(f"  missions:         neso cmd controller landing_test{flag}  (takeoff | hover | lemniscate | land | arm | hold | "
           "abort)", flush=True)

@@ -42,11 +42,14 @@ class Requirement:
     severity: str = "no-go"
 
     def holds(self, value: float) -> bool:
+        """Whether ``value`` meets it, a float as MAVLink carries it (float32: 0.3 arrives as 0.30000001)."""
         if not math.isfinite(value):
             return False
         if self.values:
-            return any(value == v for v in self.values)
-        return self.low <= value <= self.high
+            return any(math.isclose(value, v, rel_tol=1e-6, abs_tol=1e-9) for v in self.values)
+        slack = 1e-6 * max(abs(self.low) if math.isfinite(self.low) else 0.0, abs(self.high) if math.isfinite(
+            self.high) else 0.0, 1.0)
+        return self.low - slack <= value <= self.high + slack
 
     def text(self) -> str:
         """The requirement in a few words: ``5 (Hold mode) or 4 (Land mode)``, ``0.1–0.3 s``, ``≥ 1``."""

@@ -38,6 +38,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,16 +46,22 @@ import numpy as np
 from neso.frames import (NED_FROM_ENU, attitude_enu_from_ned, attitude_ned_from_enu, matrix_from_quat,
                          quat_ned_from_enu_euler, tilt_rad)
 from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
+from flight.preflight import PreflightConfig, PreflightInputs, Verdict, preflight
 from runtime.options import add_options, comma_list, config_from_options, option
-from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
+from runtime.schema import PreflightMsg, SetpointMsg, StateMsg, TelemetryMsg
+from services.px4_preflight import FAST_TIMESYNC_HZ, BusWatch, CertificateCheck, TimeSync, read_parameters
 
 # modes in which the vehicle flies (or waits) on its own, or not reported yet: setpoints are withheld (see _may_stream)
 VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
                      "ALTCTL", "STABILIZED", "MANUAL", "ACRO", "RATTITUDE")
-COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
+COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover",
+            "preflight", "param_set")
 # PX4 SITL's default home (PX4_HOME_LAT, PX4_HOME_LON, PX4_HOME_ALT in PX4-Autopilot's SITL start scripts): deg, deg, m
 PX4_SITL_HOME_LLA = (47.397742, 8.545594, 488.0)
 MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_FRD, MAV_ESTIMATOR_TYPE_VISION = 1, 12, 2  # MAVLink common.xml
+# ESTIMATOR_STATUS_FLAGS (common.xml): attitude, horizontal velocity, relative horizontal and absolute vertical position
+EKF_LOCAL_POSITION = 1 | 2 | 8 | 32
+ESTIMATOR_CONST_POS_MODE = 128  # no aiding: EKF2 holds a constant position
 
 
 def parse_lla(text: str) -> tuple[float, ...]:
@@ -106,6 +113,9 @@ class GatewayConfig:
              "reports it: indoors, without GPS, PX4 has a global position only from it, and its Hold, and arming "
              "in Hold, need one (default: PX4 SITL's home; a lab gives its own); 'none': not sent (a vehicle with GPS)")
     origin_retry_s: float = 1.0
+    preflight_period_s: float = 1.0  # the verdict is judged and published this often
+    preflight_params_s: float = 10.0  # the vehicle's parameters are read again this often while it is disarmed
+    preflight_fresh_s: float = 3.0  # an arm command judges by a verdict at most this old (else it checks first)
     forward_sources: tuple[str, ...] = option(("mocap",), cli=comma_list(),
                                               help="state sources forwarded to PX4 as external vision (comma-separated; "
                                                    "'' none)")
@@ -140,6 +150,7 @@ class GatewayCore:
         self.last_pose_s: float | None = None
         self.pose_lost_since_s: float | None = None
         self.events: list[tuple[str, str]] = []
+        self._delays_s: deque[float] = deque(maxlen=250)  # the last 5 s at 50 Hz: capture → sent to PX4
 
     # -- setpoints ---------------------------------------------------------------------
     def on_setpoint(self, sp: SetpointMsg, now_s: float) -> Px4Attitude | None:
@@ -206,13 +217,31 @@ class GatewayCore:
         self.failsafe = ""
 
     # -- motion capture to PX4 -----------------------------------------------------------------
-    def on_pose(self, now_s: float) -> None:
-        """A state to forward to PX4 as external vision arrived at ``now_s``."""
+    def capture_s(self, state: StateMsg, received_s: float) -> float:
+        """When ``state``'s pose was captured, on this process's clock: its arrival ``received_s`` less the age the
+        source gave it (``stamp_s - capture_stamp_s``, machine-independent); its arrival when unknown."""
+        if state.capture_stamp_s <= 0.0:
+            return received_s
+        return received_s - max(0.0, state.stamp_s - state.capture_stamp_s)
+
+    def on_pose(self, now_s: float, capture_s: float | None = None) -> None:
+        """A state to forward to PX4 as external vision arrived at ``now_s``, its pose captured at ``capture_s``."""
+        if capture_s is not None:
+            self._delays_s.append(now_s - capture_s)
         if self.pose_lost_since_s is not None:
             self.events.append(("info", f"motion capture back after {now_s - self.pose_lost_since_s:.2f} s: PX4 "
                                         "fuses it again (odometry quality 100)"))
             self.pose_lost_since_s = None
         self.last_pose_s = now_s
+
+    def delay_to_vehicle_ms(self, link_s: float = 0.0) -> tuple[float, float] | None:
+        """The motion capture's delay to the vehicle over the last 5 s (ms, p50 and p99): capture → sent here, plus
+        ``link_s`` (half the link's round trip); None before any pose."""
+        if not self._delays_s:
+            return None
+        d = sorted(self._delays_s)
+        p50, p99 = d[len(d) // 2], d[min(len(d) - 1, math.ceil(0.99 * len(d)) - 1)]
+        return (p50 + link_s) * 1e3, (p99 + link_s) * 1e3
 
     def level_setpoint(self) -> Px4Attitude | None:
         """What to fly while the motion capture is lost, or while a failsafe's mode is not taken yet: level, at the
@@ -316,12 +345,20 @@ class Px4Link:
         self.core = GatewayCore(config)
         self.tele = {"armed": None, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
                      "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0,
-                     "autopilot": "", "status_text": ""}
+                     "autopilot": "", "status_text": "", "local_position_ok": None, "armable": None}
         self.system = self.action = self.offboard = self.direct = None
         self.system_id = 0
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
+        self.last_pose_capture_s = 0.0  # its capture on this process's clock (ODOMETRY time_usec)
         self.actions: queue.Queue = queue.Queue()
+        self.param = self.timesync = None
+        self.watch, self.certificate = BusWatch(), CertificateCheck()
+        self.params: tuple[dict, str] = ({}, "not read yet")
+        self.params_read_s = -math.inf
+        self.verdict: Verdict | None = None
+        self.verdict_s = -math.inf
+        self.preflight_lock = threading.Lock()  # one check at a time (the 1 Hz loop, a command)
 
     # -- life ----------------------------------------------------------------------------
     def run(self) -> None:
@@ -335,10 +372,13 @@ class Px4Link:
             node.log(f"MAVLink connection {self.config.mavlink}: {result}")
             node.subscribe("setpoint", self._on_setpoint)
             node.subscribe("state", self._on_state)
+            node.subscribe("network", self.watch.on_network)
+            node.subscribe_health(self.watch.on_health)
             node.on_command(self._on_command, unlocked=COMMANDS)
             node.status_hook = self._status
             threading.Thread(target=self._telemetry_loop, name="px4-telemetry", daemon=True).start()
             threading.Thread(target=self._watchdog_loop, name="px4-watchdog", daemon=True).start()
+            threading.Thread(target=self._preflight_loop, name="px4-preflight", daemon=True).start()
             self._connect()
             while not node.stopping:
                 try:
@@ -348,13 +388,16 @@ class Px4Link:
                 done(self._do(what))
         finally:
             with node.lock:  # no bus handler may reach a MAVSDK plugin once it is destroyed
-                self.system = self.action = self.offboard = self.direct = None
+                self.system = self.action = self.offboard = self.direct = self.param = None
+            if self.timesync is not None:
+                self.timesync.close()
             self.mavsdk.destroy()
 
     def _connect(self) -> None:
         from mavsdk.plugins.action import Action
         from mavsdk.plugins.mavlink_direct import MavlinkDirect
         from mavsdk.plugins.offboard import Offboard
+        from mavsdk.plugins.param import Param
         from mavsdk.plugins.telemetry import Telemetry
 
         deadline = time.monotonic() + self.config.connect_timeout_s
@@ -380,13 +423,28 @@ class Px4Link:
             vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
         tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
         tele.subscribe_status_text(self._on_status_text)
+        tele.subscribe_health(lambda v, _: t.update(armable=v.is_armable))
+        self._estimator_status = self.direct.subscribe_message("ESTIMATOR_STATUS", self._on_estimator_status)
         t["mode"] = tele.flight_mode().name  # MAVSDK calls subscribers on a change only; its mode here is the vehicle's
         threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         if len(self.config.global_origin) == 3:
             threading.Thread(target=self._set_global_origin, name="px4-origin", daemon=True).start()
+        self.param = Param(system)
+        self.timesync = TimeSync(self.direct, self.system_id, self.node.log)
+        self.timesync.request_rate(FAST_TIMESYNC_HZ)
         self.telemetry = tele
         self.system = system
         self.node.event("info", f"connected to autopilot system {self.system_id} on {self.config.mavlink}")
+
+    def _on_estimator_status(self, message, _user) -> None:
+        """EKF2's solution flags (ESTIMATOR_STATUS, 1 Hz on PX4's onboard link): whether it has a local position.
+        MAVSDK's ``health.is_local_position_ok`` cannot tell: PX4 v1.16 reports no vision sensor in SYS_STATUS, and
+        MAVSDK takes GPS, flow or vision from there (telemetry_impl.cpp)."""
+        import json
+
+        flags = int(json.loads(message.fields_json).get("flags", 0))
+        self.tele["local_position_ok"] = (flags & EKF_LOCAL_POSITION == EKF_LOCAL_POSITION
+                                          and not flags & ESTIMATOR_CONST_POS_MODE)
 
     def _on_status_text(self, v, _) -> None:
         """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
@@ -479,12 +537,13 @@ class Px4Link:
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
         if msg.source in self.config.forward_sources and self.direct is not None:
-            self.core.on_pose(received_s)
-            self.last_pose = msg
-            self._forward_pose(msg)
+            capture_s = self.core.capture_s(msg, received_s)
+            self.core.on_pose(received_s, capture_s)
+            self.last_pose, self.last_pose_capture_s = msg, capture_s
+            self._forward_pose(msg, capture_s)
         self._drain_events()
 
-    def _forward_pose(self, msg: StateMsg, quality_percent: int = 100) -> None:
+    def _forward_pose(self, msg: StateMsg, capture_s: float, quality_percent: int = 100) -> None:
         """The state as external vision, in the form PX4 v1.16's EKF2 fuses (mavlink_receiver.cpp,
         handle_message_odometry): ODOMETRY with estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which
         EKF2 does not read), pose frame LOCAL_NED (MOCAP_NED is not among the frames it accepts: the position
@@ -494,7 +553,10 @@ class Px4Link:
         MavlinkDirect. Covariances unknown (NaN: EKF2 then uses EKF2_EVP_NOISE, EKF2_EVV_NOISE); body rates 0
         (MavlinkDirect takes no NaN for a single field; EKF2 does not read them). ``quality_percent``: 100 for a
         tracked pose, -1 ("odometry has failed") for the last one repeated while the motion capture is lost;
-        EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp)."""
+        EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp). ``time_usec``: the pose's capture ``capture_s`` on
+        this machine's monotonic clock, which PX4 converts into its own once its time sync with this gateway has
+        converged (:mod:`services.px4_preflight`; before, and with 0, it stamps the sample on arrival:
+        mavlink_receiver.cpp, Timesync::sync_stamp)."""
         import json
 
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
@@ -503,7 +565,8 @@ class Px4Link:
         q = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
         v_frd = matrix_from_quat(q).T @ (NED_FROM_ENU @ np.asarray(msg.vel_enu_mps, dtype=float))
         unknown = ["NaN"] + [0.0] * 20
-        fields = {"time_usec": 0, "frame_id": MAV_FRAME_LOCAL_NED, "child_frame_id": MAV_FRAME_BODY_FRD,
+        fields = {"time_usec": round(capture_s * 1e6), "frame_id": MAV_FRAME_LOCAL_NED,
+                  "child_frame_id": MAV_FRAME_BODY_FRD,
                   "x": y, "y": x, "z": -z, "q": [float(v) for v in q],
                   "vx": float(v_frd[0]), "vy": float(v_frd[1]), "vz": float(v_frd[2]),
                   "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0, "pose_covariance": unknown,
@@ -519,14 +582,126 @@ class Px4Link:
         if name == "calibrate_hover":
             with self.node.lock:
                 return self.core.start_calibration(time.monotonic())
+        if name == "preflight":  # a fresh check, the vehicle's parameters read again (seconds: off the worker)
+            verdict = self.check_preflight(read_params=True)
+            return verdict.go, verdict.table()
         if self.system is None:
             return False, f"no vehicle connected on {self.config.mavlink}"
+        if name == "arm":
+            refusal = self._arm_gate(args.get("override") is True)
+            if refusal:
+                return False, refusal
+        if name == "param_set":
+            return self._param_set(args)
         done = threading.Event()
         answer: list = []
         self.actions.put((name, lambda result: (answer.append(result), done.set())))
         if not done.wait(5.0):
             return False, f"{name}: no answer from the vehicle within 5 s"
         return answer[0]
+
+    # -- preflight ------------------------------------------------------------------------------
+    def _param_set(self, args: dict) -> tuple[bool, str]:
+        """``param_set {name, value}``: one parameter of the table (flight/px4_params.py) set on the vehicle over
+        MAVLink (MAVSDK's Param, PARAM_SET), disarmed only; the next preflight reads it back."""
+        from mavsdk.plugins.param import ParamError
+
+        from flight.px4_params import row
+
+        name, value = args.get("name"), args.get("value")
+        try:
+            p = row(str(name))
+        except KeyError:
+            return False, f"param_set: {name!r} is not in the parameter table (flight/px4_params.py; others: QGroundControl)"
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return False, f"param_set: value must be a number, got {value!r}"
+        if p.kind == "int32" and value != int(value):
+            return False, f"param_set: {p.name} is an integer, got {value!r}"
+        if self.tele["armed"]:
+            return False, "param_set: the vehicle is armed (disarm first)"
+        try:
+            if p.kind == "int32":
+                self.param.set_param_int(p.name, int(value))
+            else:
+                self.param.set_param_float(p.name, float(value))
+        except ParamError as exc:
+            return False, f"param_set {p.name} {value:g}: refused by the vehicle: {exc.result.name}"
+        self.params_read_s = -math.inf  # the next check reads them all again
+        self.node.event("info", f"param_set {p.name} {value:g} (operator)")
+        return True, f"{p.name} set to {value:g} on the vehicle"
+
+
+    def _arm_gate(self, override: bool) -> str:
+        """Why an arm command is refused ("" when it may go on): the newest preflight verdict (a fresh check if it
+        is older than ``preflight_fresh_s``) says no-go and the operator did not override it. An override is an
+        event and goes into the published verdict (both recorded)."""
+        verdict = self.verdict
+        if verdict is None or time.monotonic() - self.verdict_s > self.config.preflight_fresh_s:
+            verdict = self.check_preflight()
+        if verdict.go:
+            return ""
+        items = "; ".join(f"{i.name}: {i.found}" + (f" → {i.fix}" if i.fix else "") for i in verdict.no_go())
+        if override:
+            note = f"armed on a preflight NO-GO by the operator's override: {items}"
+            self.node.event("warning", note)
+            self._publish_verdict(verdict, self.verdict_s, override=note)
+            return ""
+        return (f"arm refused: preflight NO-GO: {items} (`neso preflight` prints every item; `neso cmd px4_gateway "
+                "arm override=true` arms anyway, logged and recorded)")
+
+    def check_preflight(self, *, read_params: bool = False) -> Verdict:
+        """Judge now (:func:`flight.preflight.preflight`) from what the gateway knows, reading the vehicle's
+        parameters first when asked or when the last read is older than ``preflight_params_s`` and it is
+        disarmed; publish the verdict."""
+        with self.preflight_lock:
+            now = time.monotonic()
+            stale = now - self.params_read_s > self.config.preflight_params_s and self.tele["armed"] is not True
+            if self.param is not None and (read_params or stale):
+                self.params = read_parameters(self.param)
+                self.params_read_s = time.monotonic()
+            verdict = preflight(self._preflight_inputs(), PreflightConfig(pose_lost_after_s=self.config.pose_lost_after_s))
+            self.verdict, self.verdict_s = verdict, time.monotonic()
+            self._publish_verdict(verdict, self.verdict_s)
+            return verdict
+
+    def _preflight_inputs(self) -> PreflightInputs:
+        t, now = self.tele, time.monotonic()
+        connected = self.system is not None and self.system.is_connected()
+        ts = self.timesync
+        rtt = ts.rtt_p50_s() if ts is not None else None
+        with self.node.lock:
+            pose, pose_s = self.last_pose, self.core.last_pose_s
+            delay = self.core.delay_to_vehicle_ms((rtt or 0.0) / 2)
+            mocap = self.watch.source_counters()
+            network = self.watch.network
+        offset = None
+        if pose is not None and pose_s is not None and now - pose_s < 0.5 and t.get("local_position_ok"):
+            x, y, z = pose.pos_enu_m
+            n, e, d = t["pos_ned"]
+            offset = math.dist((n, e, d), (y, x, -z))
+        params, error = self.params
+        return PreflightInputs(
+            connected=connected, autopilot=t["autopilot"], armable=t.get("armable"),
+            armable_why=t["status_text"] if t.get("armable") is False else "", params=params,
+            params_error=error if connected else "", local_position_ok=t.get("local_position_ok"),
+            ev_offset_m=offset, mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
+            services=self.watch.services(self.node.alive_services(), now), delay_ms=delay,
+            px4_uses_capture_time=ts is not None and ts.px4_converged(), certificate=self.certificate.verdict(network),
+            battery_remaining=t["battery"] if math.isfinite(t["battery"]) else -1.0,
+            battery_v=t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0)
+
+    def _publish_verdict(self, verdict: Verdict, checked_s: float, override: str = "") -> None:
+        self.node.publisher("preflight")(PreflightMsg(stamp_s=time.monotonic(), checked_s=checked_s, go=verdict.go,
+                                                      items=verdict.as_items(), override=override[:512]))
+
+    def _preflight_loop(self) -> None:
+        while not self.node.wait(self.config.preflight_period_s):
+            if self.timesync is not None:
+                self.timesync.ask()
+            try:
+                self.check_preflight()
+            except Exception as exc:  # a check must never stop the gateway: reported, tried again next second
+                self.node.event("error", f"preflight check failed: {type(exc).__name__}: {exc}")
 
     # -- the worker (blocking MAVSDK calls) ----------------------------------------------------
     def _do(self, name: str) -> tuple[bool, str]:
@@ -560,7 +735,7 @@ class Px4Link:
                 action = self.core.check_stale(now, offboard=self.tele["mode"] == "OFFBOARD", armed=self.tele["armed"])
                 pose_failed = self.core.pose_failed(now) and self.direct is not None and self.last_pose is not None
                 if pose_failed:
-                    self._forward_pose(self.last_pose, quality_percent=-1)  # at the watchdog's 50 Hz
+                    self._forward_pose(self.last_pose, self.last_pose_capture_s, quality_percent=-1)  # at 50 Hz
                     self.core.counts["pose_failed_sent"] += 1
                 if (pose_failed or self.core.failsafe) and self.offboard is not None and self.tele["mode"] == "OFFBOARD":
                     level = self.core.level_setpoint()

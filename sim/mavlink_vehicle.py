@@ -44,6 +44,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -138,6 +139,7 @@ class MavlinkVehicle:
         self._ev_since_s: float | None = None  # monotonic start of the current unbroken external-vision run
         self._ev_last_s = -math.inf
         self.ready = False  # its pre-flight checks pass (module docstring)
+        self.params = dict(load_params())  # name → value as the airframe file writes it (a point: a float)
         self._said_ready = False
         self._last_report_s = -math.inf
         self._report_due = False  # a change of the checks' results not yet reported (PX4's rate limit)
@@ -145,6 +147,7 @@ class MavlinkVehicle:
         self._t0 = time.monotonic()
         self._next_slow_s = 0.0
         self._next_hb_s = 0.0
+        self._next_estimator_s = 0.0
         self._stop = threading.Event()
         self._rx = threading.Thread(target=self._receive, name="mavlink-vehicle-rx", daemon=True)
         self._rx.start()
@@ -169,8 +172,8 @@ class MavlinkVehicle:
                 continue
             now = time.monotonic()
             kind = msg.get_type()
-            if kind == "ODOMETRY" and msg.quality >= 1:  # EKF2_EV_QMIN 1 (sim/px4/neso_quad.params): -1 is not fused
-                self._on_external_vision(now)
+            if kind == "ODOMETRY" and (self._param("EKF2_EV_QMIN") <= 0 or msg.quality >= self._param("EKF2_EV_QMIN")):
+                self._on_external_vision(now)  # EKF2's quality_sufficient (ev_control.cpp): -1 is not fused with 1
             if kind == "SET_ATTITUDE_TARGET":
                 self._on_attitude_target(msg, now)
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
@@ -181,9 +184,40 @@ class MavlinkVehicle:
             elif kind == "SET_GPS_GLOBAL_ORIGIN":  # PX4 takes it as its EKF origin and reports it back
                 self._record({"t": now, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
                 self._send(lambda m: m.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, 0))
-            elif kind == "PARAM_REQUEST_LIST":
-                self._send(lambda m: m.param_value_send(b"MIS_TAKEOFF_ALT", self.config.takeoff_height_m,
-                                                        mavlink.MAV_PARAM_TYPE_REAL32, 1, 0))
+            elif kind in ("PARAM_REQUEST_READ", "PARAM_SET", "PARAM_REQUEST_LIST"):
+                self._on_param(msg, kind)
+
+    # -- parameters (PX4's: the world's airframe file, sim/px4/neso_quad.params) ---------------------------
+    def _param(self, name: str) -> float:
+        with self.lock:
+            return float(self.params[name])
+
+    def _on_param(self, msg, kind: str) -> None:
+        """PARAM_REQUEST_READ / PARAM_SET / PARAM_REQUEST_LIST answered with PARAM_VALUE as PX4 answers them: int32
+        values bytewise in the float field (PX4's encoding; MAVSDK reads it so from a PX4); a name it does not have
+        gets no answer (PX4 v1.16 sends none)."""
+        names = list(self.params)
+        if kind == "PARAM_REQUEST_LIST":
+            wanted = names
+        else:
+            name = msg.param_id.rstrip("\0") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\0")
+            if name not in self.params:
+                return
+            wanted = [name]
+            if kind == "PARAM_SET":
+                is_int = "." not in self.params[name]
+                value = _int_of_bytes(msg.param_value) if is_int else float(msg.param_value)
+                with self.lock:
+                    self.params[name] = str(int(value)) if is_int else repr(float(value))
+                self._record({"t": time.monotonic(), "kind": "param_set", "name": name, "value": value})
+        for name in wanted:
+            text = self.params[name]
+            if "." in text:
+                value, kind_id = float(text), mavlink.MAV_PARAM_TYPE_REAL32
+            else:
+                value, kind_id = _bytes_of_int(int(text)), mavlink.MAV_PARAM_TYPE_INT32
+            index = names.index(name)
+            self._send(lambda m, n=name, v=value, k=kind_id, i=index: m.param_value_send(n.encode(), v, k, len(names), i))
 
     def _on_attitude_target(self, msg, now: float) -> None:
         q = tuple(float(v) for v in msg.q)
@@ -411,6 +445,17 @@ class MavlinkVehicle:
         if now >= self._next_slow_s:
             self._next_slow_s = now + 0.1
             self._send_slow(pos_ned, vel_ned, yaw_ned, boot_ms)
+        if now >= self._next_estimator_s:
+            self._next_estimator_s = now + 1.0
+            self._send_estimator_status()
+
+    def _send_estimator_status(self) -> None:
+        """ESTIMATOR_STATUS as PX4 v1.16 streams it on its onboard link (1 Hz): EKF2's solution flags, a local
+        position (attitude, horizontal velocity, relative horizontal and absolute vertical position) once it has
+        settled on external vision, else attitude and a constant position."""
+        flags = (1 | 2 | 8 | 32) if self.ready else (1 | 128)
+        self._send(lambda m: m.estimator_status_send(int((time.monotonic() - self._t0) * 1e6), flags, 0, 0, 0, 0, 0,
+                                                     0, 0, 0))
 
     def _send_slow(self, pos_ned, vel_ned, yaw_ned: float, boot_ms: int) -> None:
         lat0, lon0, alt0 = 47.397742, 8.545594, 488.0  # PX4 SITL's default origin (Zurich)
@@ -457,3 +502,12 @@ def _frd_velocity(q_wxyz, vel_ned) -> tuple[float, float, float]:
                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
     v = r.T @ np.asarray(vel_ned)
     return float(v[0]), float(v[1]), float(v[2])
+
+
+def _bytes_of_int(value: int) -> float:
+    """An int32 parameter as PX4 sends it in PARAM_VALUE's float field: its four bytes, reinterpreted."""
+    return struct.unpack("<f", struct.pack("<i", value))[0]
+
+
+def _int_of_bytes(value: float) -> int:
+    return struct.unpack("<i", struct.pack("<f", value))[0]

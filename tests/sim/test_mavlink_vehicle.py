@@ -223,3 +223,46 @@ def test_landing_is_detected_and_disarms_two_seconds_later_in_px4s_words():
     assert not vehicle.armed
     disarmed_at = [t for t, text in said if text == "Disarmed by landing"]
     assert disarmed_at and 2.0 <= disarmed_at[0] <= 2.1, said  # COM_DISARM_LAND after touch-down at t = 0
+
+
+def test_parameters_are_read_and_set_as_px4_answers_them_and_ekf2_ev_qmin_decides_what_is_fused():
+    """PARAM_REQUEST_READ / PARAM_SET answered with PARAM_VALUE as PX4 answers them (int32 bytewise, floats as
+    floats), from the world's airframe file; a name it does not have gets no answer; with EKF2_EV_QMIN set to 0
+    (PX4's default) a pose with quality -1 is fused, as EKF2 does (ev_control.cpp)."""
+    import struct
+
+    from sim.px4_sitl import load_params
+
+    s = Station()
+    try:
+        def read(name: str, since: float):
+            s.conn.mav.param_request_read_send(1, 1, name.encode(), -1)
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                s.listen(0.02)
+                got = [m for t, m in s.heard if t >= since and m.get_type() == "PARAM_VALUE" and m.param_id == name]
+                if got:
+                    return got[-1]
+            return None
+
+        airframe = load_params()
+        qmin = read("EKF2_EV_QMIN", time.monotonic())
+        assert qmin.param_type == mavlink.MAV_PARAM_TYPE_INT32
+        assert struct.unpack("<i", struct.pack("<f", qmin.param_value))[0] == int(airframe["EKF2_EV_QMIN"]) == 1
+        loss = read("COM_OF_LOSS_T", time.monotonic())
+        assert loss.param_type == mavlink.MAV_PARAM_TYPE_REAL32 and loss.param_value == pytest.approx(0.3)
+        assert read("NO_SUCH_PARAM", time.monotonic()) is None
+        s.stream(3.0, quality=-1)
+        assert not s.vehicle.ready, "quality -1 is not fused with EKF2_EV_QMIN 1"
+        since = time.monotonic()
+        s.conn.mav.param_set_send(1, 1, b"EKF2_EV_QMIN", struct.unpack("<f", struct.pack("<i", 0))[0],
+                                  mavlink.MAV_PARAM_TYPE_INT32)
+        s.listen(0.2)
+        echo = [m for t, m in s.heard if t >= since and m.get_type() == "PARAM_VALUE"]
+        assert echo and struct.unpack("<i", struct.pack("<f", echo[-1].param_value))[0] == 0
+        s.stream(3.0, quality=-1)
+        assert s.vehicle.ready, "with EKF2_EV_QMIN 0 the stale pose is fused"
+        status = s.last("ESTIMATOR_STATUS")
+        assert status is not None and status.flags & 8 and not status.flags & 128
+    finally:
+        s.close()

@@ -64,3 +64,11 @@ def test_every_checked_row_names_its_px4_source_file():
     for p in rows():
         assert p.source.startswith("src/") and p.why, p.name
         assert p.kind in ("int32", "float")
+
+
+def test_a_float_as_mavlink_carries_it_still_meets_its_bound():
+    import struct
+
+    as_float32 = struct.unpack("<f", struct.pack("<f", 0.3))[0]  # 0.30000001192092896
+    assert as_float32 > 0.3 and judge(row("COM_OF_LOSS_T"), as_float32) == (True, "")
+    assert not judge(row("COM_OF_LOSS_T"), 0.31)[0]

@@ -1,0 +1,169 @@
+"""The px4_gateway's preflight, the I/O side (the verdict itself is :mod:`flight.preflight`): the vehicle's
+parameters read over MAVLink (MAVSDK's Param plugin, one ``PARAM_REQUEST_READ`` each), what the bus shows (every
+service's health and liveliness, the estimator's network), the certificate recomputed through its public API, and
+PX4's time sync with the gateway (TIMESYNC), which lets PX4 use the capture time the gateway stamps ODOMETRY with.
+
+**Time sync** (PX4 v1.16: ``src/lib/timesync/Timesync.cpp``, ``src/modules/mavlink/mavlink_timesync.cpp``): PX4
+sends TIMESYNC requests (``tc1`` 0, ``ts1`` its time in ns) and converts a received ``time_usec`` into its own clock
+(``sync_stamp``) only once its offset estimate has converged: 500 answers with a round trip under 10 ms
+(``CONVERGENCE_WINDOW``, ``MAX_RTT_SAMPLE``); before that it stamps ODOMETRY on arrival. MAVSDK answers them only
+when its timesync is enabled, which MAVSDK-Python 4.1 does not do, so the gateway answers them here with
+``time.monotonic_ns()`` — the clock of ``time_usec`` — and asks PX4 for them at 50 Hz until PX4 has had
+:data:`CONVERGED_ANSWERS` (10 s instead of the onboard link's 10 Hz, 50 s), then at its own rate again. Its own
+TIMESYNC requests to PX4 measure the link's round trip (half of it is the link's share of the motion capture's
+delay to PX4).
+"""
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections import deque
+
+from flight.preflight import ServiceSeen
+from flight.px4_params import checked
+
+CONVERGED_ANSWERS = 500  # PX4's Timesync CONVERGENCE_WINDOW
+MAX_RTT_S = 0.010  # PX4's Timesync MAX_RTT_SAMPLE: an answer slower than this does not count
+FAST_TIMESYNC_HZ = 50.0
+MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_TIMESYNC = 511, 111
+MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN = 512, 49
+
+
+def read_parameters(param) -> tuple[dict[str, float | None], str]:
+    """Every checked parameter of :mod:`flight.px4_params` from the vehicle (MAVSDK ``Param``): ({name: value,
+    None when the vehicle has no such parameter}, "") or ({}, why none could be read)."""
+    from mavsdk.plugins.param import ParamError, ParamResult
+
+    values: dict[str, float | None] = {}
+    for p in checked():
+        try:
+            values[p.name] = float(param.get_param_int(p.name) if p.kind == "int32" else param.get_param_float(p.name))
+        except ParamError as exc:
+            if exc.result in (ParamResult.DOES_NOT_EXIST, ParamResult.TIMEOUT, ParamResult.WRONG_TYPE,
+                              ParamResult.TYPE_MISMATCH):
+                values[p.name] = None  # PX4 does not answer PARAM_REQUEST_READ for a name it does not have
+            else:
+                return {}, f"{p.name}: {exc.result.name}"
+    if values and all(v is None for v in values.values()):
+        return {}, "the vehicle answered none of them"
+    return values, ""
+
+
+class BusWatch:
+    """What the bus shows the gateway: each service's last health report (service → (received s, HealthMsg)) and
+    the estimator's newest network report. Fed under the node lock."""
+
+    def __init__(self) -> None:
+        self.health: dict[str, tuple[float, object]] = {}
+        self.network = None
+
+    def on_health(self, service: str, msg, received_s: float) -> None:
+        self.health[service] = (received_s, msg)
+
+    def on_network(self, msg, _received_s: float) -> None:
+        self.network = msg
+
+    def services(self, alive: set[str], now_s: float, recent_s: float = 3.0) -> dict[str, ServiceSeen]:
+        """Each service seen: alive when its liveliness token answered or its health came within ``recent_s``
+        (a liveliness query can come back empty while the bus is busy; a health report cannot be faked)."""
+        names = set(alive) | set(self.health)
+        age = {n: now_s - self.health[n][0] if n in self.health else math.inf for n in names}
+        return {n: ServiceSeen(n in alive or age[n] <= recent_s, age[n],
+                               self.health[n][1].status if n in self.health else "") for n in names}
+
+    def source_counters(self) -> dict[str, float]:
+        got = self.health.get("source")
+        return dict(got[1].counters) if got is not None else {}
+
+
+class CertificateCheck:
+    """The certificate of what the estimator flies, recomputed here through its public API
+    (:func:`neso.certificate.flight_certificate`, the function the estimator uses) from the network report's
+    L_N, gains and ω_o; the role certificate's frontier adopted from the cross-process cache when it verifies
+    (:mod:`services.certificate_cache`), else solved once per gains (seconds: off the flight loop's threads)."""
+
+    def __init__(self) -> None:
+        self._done: dict[tuple[float, float, float, float], dict] = {}
+
+    def verdict(self, network) -> dict | None:
+        if network is None or not network.certificate:
+            return None
+        c = network.certificate
+        key = (float(c["lipschitz_phys"]), float(c["kp"]), float(c["kd"]), float(c["omega_o"]))
+        if key not in self._done:
+            from neso.certificate import flight_certificate
+            from services.certificate_cache import warm
+
+            warm(key[1], key[2], key[3])
+            self._done[key] = flight_certificate(key[0], kp=key[1], kd=key[2], omega_o=key[3]).to_dict()
+        return self._done[key]
+
+
+class TimeSync:
+    """Answers PX4's TIMESYNC requests with this machine's monotonic clock, measures the link's round trip with
+    requests of its own, and counts the answers PX4 could use (module docstring)."""
+
+    def __init__(self, direct, system_id: int, log) -> None:
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        self._message, self._direct, self._system_id, self._log = MavlinkMessage, direct, system_id, log
+        self._lock = threading.Lock()
+        self.answered = 0
+        self._fast = False
+        self.rtt_s: deque[float] = deque(maxlen=50)
+        self._handle = direct.subscribe_message("TIMESYNC", self._on_timesync)
+
+    def _send(self, name: str, fields: dict) -> None:
+        try:
+            self._direct.send_message(self._message(name, target_system_id=self._system_id,
+                                                    fields_json=json.dumps(fields)))
+        except Exception as exc:  # MavlinkDirectError: the link is going; the next one may pass
+            self._log(f"{name} not sent: {exc}")
+
+    def _on_timesync(self, message, _user) -> None:
+        now_ns = time.monotonic_ns()
+        fields = json.loads(message.fields_json)
+        tc1, ts1 = int(fields.get("tc1", 0)), int(fields.get("ts1", 0))
+        if tc1 == 0:  # PX4 asks: answer at once with our clock (its offset estimate is PX4 - ours)
+            self._send("TIMESYNC", {"tc1": now_ns, "ts1": ts1, "target_system": message.system_id,
+                                    "target_component": message.component_id})
+            with self._lock:
+                self.answered += 1
+                slow_down = self._fast and self.answered >= CONVERGED_ANSWERS + 100
+                self._fast = self._fast and not slow_down
+            if slow_down:
+                self.request_rate(0.0)
+        elif 0 < now_ns - ts1 < 5_000_000_000:  # PX4's answer to one of ours (ts1: our clock when we asked)
+            with self._lock:
+                self.rtt_s.append((now_ns - ts1) / 1e9)
+
+    def ask(self) -> None:
+        """One request of our own (PX4 answers it with its time): a round-trip sample."""
+        self._send("TIMESYNC", {"tc1": 0, "ts1": time.monotonic_ns(), "target_system": self._system_id,
+                                "target_component": 1})
+
+    def request_rate(self, rate_hz: float) -> None:
+        """Ask PX4 to send TIMESYNC requests at ``rate_hz`` (0: its default for the link; SET_MESSAGE_INTERVAL)."""
+        with self._lock:
+            self._fast = rate_hz > 0
+        self._send("COMMAND_LONG", {"target_system": self._system_id, "target_component": 1,
+                                    "command": MAV_CMD_SET_MESSAGE_INTERVAL, "confirmation": 0,
+                                    "param1": MAVLINK_MSG_ID_TIMESYNC, "param2": 1e6 / rate_hz if rate_hz else 0.0,
+                                    "param3": 0.0, "param4": 0.0, "param5": 0.0, "param6": 0.0, "param7": 0.0})
+
+    def rtt_p50_s(self) -> float | None:
+        with self._lock:
+            rtts = sorted(self.rtt_s)
+        return rtts[len(rtts) // 2] if rtts else None
+
+    def px4_converged(self) -> bool:
+        """Whether PX4's offset estimate has converged by now, as PX4's Timesync counts: enough answers, with round
+        trips (ours measured the same link) under its 10 ms."""
+        rtt = self.rtt_p50_s()
+        with self._lock:
+            return self.answered >= CONVERGED_ANSWERS and rtt is not None and rtt < MAX_RTT_S
+
+    def close(self) -> None:
+        self._direct.unsubscribe_message(self._handle)
