@@ -59,7 +59,8 @@ class ServiceSeen:
 class PreflightInputs:
     """What the gateway gathered. ``params``: the checked parameters read from the vehicle (None: the vehicle has
     no such parameter); ``params_error``: why they could not be read ("" when they were). ``ev_offset_m``: PX4's
-    position minus the motion capture's, norm (None: unknown). ``mocap``: the source's health counters
+    horizontal position minus the motion capture's, norm (None: unknown; PX4's local height may carry an offset
+    from its global origin's altitude, EKF2's setAltOrigin). ``mocap``: the source's health counters
     (:class:`flight.mocap_time.StreamStats` figures, ``rigid_body_tracked``); ``state_age_s``: since the last
     state reached the gateway. ``delay_ms``: motion capture → PX4 (p50, p99; None: not measured);
     ``px4_uses_capture_time``: PX4's time sync with the gateway has converged, so it takes ODOMETRY's
@@ -201,11 +202,11 @@ def _estimator(i: PreflightInputs, c: PreflightConfig) -> list[Item]:
                      "wait for the motion capture and PX4's telemetry")]
     if i.ev_offset_m > c.ev_agreement_m:
         return [Item("EKF2 fuses the motion capture", NO_GO,
-                     f"PX4's position is {i.ev_offset_m * 100:.1f} cm from the motion capture's",
+                     f"PX4's horizontal position is {i.ev_offset_m * 100:.1f} cm from the motion capture's",
                      "the rigid body's axes (--frame, Motive's up axis) or EKF2's heading: restart PX4 with the "
                      "vehicle still and the motion capture streaming")]
-    return [Item("EKF2 fuses the motion capture", GO, f"PX4's position within {i.ev_offset_m * 100:.1f} cm of the "
-                                                      "motion capture's")]
+    return [Item("EKF2 fuses the motion capture", GO, f"PX4's horizontal position within {i.ev_offset_m * 100:.1f} cm "
+                                                      "of the motion capture's; its vertical position valid")]
 
 
 def _mocap(i: PreflightInputs, c: PreflightConfig) -> list[Item]:

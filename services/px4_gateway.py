@@ -59,9 +59,9 @@ COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offbo
 # PX4 SITL's default home (PX4_HOME_LAT, PX4_HOME_LON, PX4_HOME_ALT in PX4-Autopilot's SITL start scripts): deg, deg, m
 PX4_SITL_HOME_LLA = (47.397742, 8.545594, 488.0)
 MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_FRD, MAV_ESTIMATOR_TYPE_VISION = 1, 12, 2  # MAVLink common.xml
-# ESTIMATOR_STATUS_FLAGS (common.xml): attitude, horizontal velocity, relative horizontal and absolute vertical position
+# ESTIMATOR_STATUS_FLAGS (common.xml): attitude, horizontal velocity, relative horizontal and absolute vertical
+# position (EKF2 sets CONST_POS_MODE, 128, also for a vehicle at rest: ekf_helper.cpp get_ekf_soln_status)
 EKF_LOCAL_POSITION = 1 | 2 | 8 | 32
-ESTIMATOR_CONST_POS_MODE = 128  # no aiding: EKF2 holds a constant position
 
 
 def parse_lla(text: str) -> tuple[float, ...]:
@@ -443,8 +443,7 @@ class Px4Link:
         import json
 
         flags = int(json.loads(message.fields_json).get("flags", 0))
-        self.tele["local_position_ok"] = (flags & EKF_LOCAL_POSITION == EKF_LOCAL_POSITION
-                                          and not flags & ESTIMATOR_CONST_POS_MODE)
+        self.tele["local_position_ok"] = flags & EKF_LOCAL_POSITION == EKF_LOCAL_POSITION
 
     def _on_status_text(self, v, _) -> None:
         """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
@@ -674,11 +673,12 @@ class Px4Link:
             delay = self.core.delay_to_vehicle_ms((rtt or 0.0) / 2)
             mocap = self.watch.source_counters()
             network = self.watch.network
-        offset = None
+        offset = None  # horizontal: PX4's local z may be shifted by its global origin's altitude (EKF2 setAltOrigin,
+        # ekf_helper.cpp; measured in SITL: 487.95 m with the origin at 488 m, the motion capture at -0.05 m)
         if pose is not None and pose_s is not None and now - pose_s < 0.5 and t.get("local_position_ok"):
-            x, y, z = pose.pos_enu_m
-            n, e, d = t["pos_ned"]
-            offset = math.dist((n, e, d), (y, x, -z))
+            x, y, _ = pose.pos_enu_m
+            n, e, _ = t["pos_ned"]
+            offset = math.dist((n, e), (y, x))
         params, error = self.params
         return PreflightInputs(
             connected=connected, autopilot=t["autopilot"], armable=t.get("armable"),
