@@ -64,7 +64,8 @@ class PreflightInputs:
     (:class:`flight.mocap_time.StreamStats` figures, ``rigid_body_tracked``); ``state_age_s``: since the last
     state reached the gateway. ``delay_ms``: motion capture → PX4 (p50, p99; None: not measured);
     ``px4_uses_capture_time``: PX4's time sync with the gateway has converged, so it takes ODOMETRY's
-    ``time_usec``. ``certificate``: :meth:`neso.certificate.FlightCertificate.to_dict` of what flies (None: the
+    ``time_usec``; ``time_sync_answers``: its time-sync requests the gateway answered (converging while some
+    came and it has not converged). ``certificate``: :meth:`neso.certificate.FlightCertificate.to_dict` of what flies (None: the
     estimator published no network). ``battery_remaining``: 0-1, negative unknown."""
 
     connected: bool
@@ -80,6 +81,7 @@ class PreflightInputs:
     services: dict[str, ServiceSeen] = field(default_factory=dict)
     delay_ms: tuple[float, float] | None = None
     px4_uses_capture_time: bool = False
+    time_sync_answers: int = 0
     certificate: dict | None = None
     battery_remaining: float = -1.0
     battery_v: float = 0.0
@@ -170,9 +172,10 @@ def _parameters(i: PreflightInputs, c: PreflightConfig) -> list[Item]:
 
 
 def ev_delay_to_set_ms(i: PreflightInputs) -> float | None:
-    """``EKF2_EV_DELAY`` for this setup (ms): 0 when PX4 takes the capture time the gateway sends (PX4's docs: with
-    correct timestamps and time sync), else the delay measured from capture to PX4 (p50); None unmeasured."""
-    if i.px4_uses_capture_time:
+    """``EKF2_EV_DELAY`` for this setup (ms): 0 when PX4 takes (or, its time sync converging, is about to take) the
+    capture time the gateway sends (PX4's docs: 0 with correct timestamps and time sync), else the delay measured
+    from capture to PX4 (p50); None unmeasured."""
+    if i.px4_uses_capture_time or i.time_sync_answers > 0:
         return 0.0
     return None if i.delay_ms is None else i.delay_ms[0]
 
@@ -180,7 +183,9 @@ def ev_delay_to_set_ms(i: PreflightInputs) -> float | None:
 def _ev_delay(name: str, value: float | None, i: PreflightInputs, c: PreflightConfig) -> Item:
     measured = ("not measured yet" if i.delay_ms is None else
                 f"motion capture → PX4 {i.delay_ms[0]:.1f} ms (p99 {i.delay_ms[1]:.1f})")
-    how = "PX4 takes the capture time" if i.px4_uses_capture_time else "PX4 stamps it on arrival"
+    how = ("PX4 takes the capture time" if i.px4_uses_capture_time else
+           f"PX4's time sync converging ({i.time_sync_answers} of 500 answers): it will take the capture time"
+           if i.time_sync_answers > 0 else "PX4 stamps it on arrival")
     want = ev_delay_to_set_ms(i)
     found = f"{'missing' if value is None else f'{value:g} ms'}; {measured}; {how}"
     if value is None:

@@ -49,7 +49,8 @@ from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
 from flight.preflight import PreflightConfig, PreflightInputs, Verdict, preflight
 from runtime.options import add_options, comma_list, config_from_options, option
 from runtime.schema import PreflightMsg, SetpointMsg, StateMsg, TelemetryMsg
-from services.px4_preflight import FAST_TIMESYNC_HZ, BusWatch, CertificateCheck, TimeSync, read_parameters
+from services.px4_preflight import (FAST_TIMESYNC_HZ, MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+                                   BusWatch, CertificateCheck, TimeSync, read_parameters)
 
 # modes in which the vehicle flies (or waits) on its own, or not reported yet: setpoints are withheld (see _may_stream)
 VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
@@ -62,6 +63,17 @@ MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_FRD, MAV_ESTIMATOR_TYPE_VISION = 1, 12, 2  #
 # ESTIMATOR_STATUS_FLAGS (common.xml): attitude, horizontal velocity, relative horizontal and absolute vertical
 # position (EKF2 sets CONST_POS_MODE, 128, also for a vehicle at rest: ekf_helper.cpp get_ekf_soln_status)
 EKF_LOCAL_POSITION = 1 | 2 | 8 | 32
+
+
+# MAVSDK's ActionResult / OffboardResult names (what the vehicle's COMMAND_ACK said) in words
+REFUSALS = {
+    "COMMAND_DENIED": "PX4 denied it", "BUSY": "PX4 is busy (temporarily rejected)",
+    "TEMPORARILY_REJECTED": "PX4 rejected it for now", "COMMAND_DENIED_NOT_LANDED": "PX4 does not do it in the air",
+    "COMMAND_DENIED_LANDED_STATE_UNKNOWN": "PX4 does not know whether it is landed", "TIMEOUT": "no answer from PX4",
+    "NO_SYSTEM": "no vehicle", "CONNECTION_ERROR": "the link to the vehicle is down",
+    "UNSUPPORTED": "PX4 does not support it", "FAILED": "PX4 tried and failed", "NO_SETPOINT_SET":
+    "no setpoint streamed yet",
+}
 
 
 def parse_lla(text: str) -> tuple[float, ...]:
@@ -109,10 +121,16 @@ class GatewayConfig:
                                            "(external-vision odometry quality -1)")
     global_origin: tuple[float, ...] = option(
         PX4_SITL_HOME_LLA, cli=(lambda lla: ",".join(str(v) for v in lla) or "none", parse_lla),
-        help="lat_deg,lon_deg,alt_m sent to the vehicle as its EKF's global origin (SET_GPS_GLOBAL_ORIGIN) until it "
-             "reports it: indoors, without GPS, PX4 has a global position only from it, and its Hold, and arming "
-             "in Hold, need one (default: PX4 SITL's home; a lab gives its own); 'none': not sent (a vehicle with GPS)")
+        help="lat_deg,lon_deg,alt_m sent to a vehicle that reports no global origin as its EKF's (SET_GPS_GLOBAL_ORIGIN) "
+             "until it reports one: indoors, without GPS, PX4 has a global position only from it, and its Hold, and "
+             "arming in Hold, need one; a vehicle with an origin keeps its own (default: PX4 SITL's home; a lab gives "
+             "its own); 'none': never sent")
     origin_retry_s: float = 1.0
+    origin_probe_s: float = 2.0  # listening for an origin the vehicle has before sending ours
+    origin_tries: int = 30  # SET_GPS_GLOBAL_ORIGIN sent at most this often (then a warning)
+    # PX4 v1.16 SITL from its first external-vision sample to "Ready for takeoff!" (three ULogs: 1.93-1.94 s; the
+    # MAVLink imitation's ev_settle_s): how long a refused arm is told EKF2 may still take
+    ev_settle_s: float = 1.9
     preflight_period_s: float = 1.0  # the verdict is judged and published this often
     preflight_params_s: float = 10.0  # the vehicle's parameters are read again this often while it is disarmed
     preflight_fresh_s: float = 3.0  # an arm command judges by a verdict at most this old (else it checks first)
@@ -151,6 +169,7 @@ class GatewayCore:
         self.pose_lost_since_s: float | None = None
         self.events: list[tuple[str, str]] = []
         self._delays_s: deque[float] = deque(maxlen=250)  # the last 5 s at 50 Hz: capture → sent to PX4
+        self.pose_run_since_s: float | None = None  # the start of the current unbroken run of forwarded poses
 
     # -- setpoints ---------------------------------------------------------------------
     def on_setpoint(self, sp: SetpointMsg, now_s: float) -> Px4Attitude | None:
@@ -228,6 +247,8 @@ class GatewayCore:
         """A state to forward to PX4 as external vision arrived at ``now_s``, its pose captured at ``capture_s``."""
         if capture_s is not None:
             self._delays_s.append(now_s - capture_s)
+        if self.pose_run_since_s is None or self.pose_lost_since_s is not None:
+            self.pose_run_since_s = now_s
         if self.pose_lost_since_s is not None:
             self.events.append(("info", f"motion capture back after {now_s - self.pose_lost_since_s:.2f} s: PX4 "
                                         "fuses it again (odometry quality 100)"))
@@ -242,6 +263,27 @@ class GatewayCore:
         d = sorted(self._delays_s)
         p50, p99 = d[len(d) // 2], d[min(len(d) - 1, math.ceil(0.99 * len(d)) - 1)]
         return (p50 + link_s) * 1e3, (p99 + link_s) * 1e3
+
+    def refusal(self, command: str, result: str, now_s: float, *, ready: bool | None, said: str = "") -> str:
+        """A command the vehicle refused, in words: what MAVSDK's ``result`` means, why when it can be told (an arm
+        before PX4's pre-arm checks pass: no external vision yet, or EKF2 still settling on it and about how long
+        more), and PX4's own words (``said``: its STATUSTEXT after the command)."""
+        words = REFUSALS.get(result, result.replace("_", " ").lower())
+        why = ""
+        if command in ("arm", "takeoff") and ready is not True:  # None: PX4 has not reported its checks yet
+            run = None if self.pose_run_since_s is None or self.pose_lost_since_s is not None else \
+                now_s - self.pose_run_since_s
+            settle = self.config.ev_settle_s
+            if run is None:
+                why = "not ready: PX4 gets no external vision (is the motion capture reaching the gateway?)"
+            elif run < settle:
+                why = (f"not ready: EKF2 settling on the motion capture, about {settle - run:.1f} s more ({run:.1f} s "
+                       f"of it so far; PX4 v1.16 took {settle:g} s in SITL)")
+            else:
+                why = (f"not ready after {run:.1f} s of motion capture (PX4 v1.16 took {settle:g} s in SITL): "
+                       "`neso preflight` for what fails")
+        return f"{command} refused by the vehicle: {words}" + (f"; {why}" if why else "") + (
+            f"; PX4 says: {said}" if said else "")
 
     def level_setpoint(self) -> Px4Attitude | None:
         """What to fly while the motion capture is lost, or while a failsafe's mode is not taken yet: level, at the
@@ -359,6 +401,7 @@ class Px4Link:
         self.verdict: Verdict | None = None
         self.verdict_s = -math.inf
         self.preflight_lock = threading.Lock()  # one check at a time (the 1 Hz loop, a command)
+        self.said: deque[tuple[float, str]] = deque(maxlen=20)  # PX4's STATUSTEXT, with its arrival
 
     # -- life ----------------------------------------------------------------------------
     def run(self) -> None:
@@ -449,6 +492,7 @@ class Px4Link:
         """PX4's own words (arming refusals, failsafes, landing): on the telemetry and in the log."""
         text = f"{v.type.name}: {v.text.strip()}"[:160]
         self.tele["status_text"] = text
+        self.said.append((time.monotonic(), text))
         self.node.log(f"vehicle says {text}")
 
     def _ask_version(self, system) -> None:
@@ -470,40 +514,63 @@ class Px4Link:
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
     def _set_global_origin(self) -> None:
-        """SET_GPS_GLOBAL_ORIGIN (MAVSDK's MavlinkDirect) every ``origin_retry_s`` until the vehicle's
-        GPS_GLOBAL_ORIGIN reports it (PX4 answers one after each: mavlink_receiver.cpp; EKF2 takes it in
-        setEkfGlobalOrigin, and its global position is then valid whenever its local one is: ekf.h)."""
+        """The vehicle's EKF global origin, only when it has none: first asked for (REQUEST_MESSAGE
+        GPS_GLOBAL_ORIGIN; PX4 answers only with a valid origin, GPS_GLOBAL_ORIGIN.hpp) and listened for
+        ``origin_probe_s``: a vehicle that has one (its GPS's, or one set before this gateway started) keeps it and
+        none is sent. Else SET_GPS_GLOBAL_ORIGIN (MAVSDK's MavlinkDirect) every ``origin_retry_s`` until the vehicle
+        reports an origin (PX4 answers one after each once it has a local position: mavlink_receiver.cpp; EKF2 takes
+        it in setEkfGlobalOrigin), at most ``origin_tries`` times: then a warning, never an endless retry."""
         import json
 
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         lat_deg, lon_deg, alt_m = self.config.global_origin
         wanted = (round(lat_deg * 1e7), round(lon_deg * 1e7))
-        reported = threading.Event()
+        reported: list[tuple[int, int, int]] = []
+        heard = threading.Event()
 
         def on_origin(message, _user) -> None:
             fields = json.loads(message.fields_json)
-            if (fields.get("latitude"), fields.get("longitude")) == wanted:
-                reported.set()
+            reported.append((fields.get("latitude"), fields.get("longitude"), fields.get("altitude", 0)))
+            heard.set()
+
+        def send(name: str, fields: dict) -> bool:
+            try:
+                direct.send_message(MavlinkMessage(name, target_system_id=self.system_id, fields_json=json.dumps(fields)))
+                return True
+            except Exception as exc:  # MavlinkDirectError: the link is not up yet; the next try may pass
+                self.node.log(f"{name} not sent: {exc}")
+                return False
 
         direct = self.direct
         handle = direct.subscribe_message("GPS_GLOBAL_ORIGIN", on_origin)
-        fields = {"target_system": self.system_id, "latitude": wanted[0], "longitude": wanted[1],
-                  "altitude": round(alt_m * 1e3), "time_usec": 0}
-        message = MavlinkMessage("SET_GPS_GLOBAL_ORIGIN", target_system_id=self.system_id,
-                                 fields_json=json.dumps(fields))
+        send("COMMAND_LONG", {"target_system": self.system_id, "target_component": 1,
+                              "command": MAV_CMD_REQUEST_MESSAGE, "confirmation": 0,
+                              "param1": MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, "param2": 0.0, "param3": 0.0, "param4": 0.0,
+                              "param5": 0.0, "param6": 0.0, "param7": 0.0})
         sent = 0
-        while not reported.is_set() and not self.node.stopping:
-            try:
-                direct.send_message(message)
-                sent += 1
-            except Exception as exc:  # MavlinkDirectError: the link is not up yet; the next try may pass
-                self.node.log(f"SET_GPS_GLOBAL_ORIGIN not sent: {exc}")
-            reported.wait(self.config.origin_retry_s)
+        if not heard.wait(self.config.origin_probe_s):
+            fields = {"target_system": self.system_id, "latitude": wanted[0], "longitude": wanted[1],
+                      "altitude": round(alt_m * 1e3), "time_usec": 0}
+            while not heard.is_set() and not self.node.stopping and sent < self.config.origin_tries:
+                sent += send("SET_GPS_GLOBAL_ORIGIN", fields)
+                heard.wait(self.config.origin_retry_s)
         direct.unsubscribe_message(handle)
-        if reported.is_set():
-            self.node.event("info", f"the vehicle's global origin is set: {lat_deg:.7f}°, {lon_deg:.7f}°, {alt_m:g} m "
-                                    f"({sent} SET_GPS_GLOBAL_ORIGIN sent)")
+        if not reported:
+            if not self.node.stopping:
+                self.node.event("warning", f"the vehicle reported no global origin after {sent} SET_GPS_GLOBAL_ORIGIN "
+                                           "(it reports one once EKF2 has a local position: is the motion capture "
+                                           "streaming?); without one PX4 refuses Hold. Restart the gateway to try again")
+            return
+        lat_e7, lon_e7, alt_mm = reported[0]
+        where = f"{lat_e7 / 1e7:.7f}°, {lon_e7 / 1e7:.7f}°, {alt_mm / 1e3:g} m"
+        if sent == 0:
+            self.node.event("info", f"the vehicle has a global origin already ({where}): kept, none sent")
+        elif (lat_e7, lon_e7) == wanted:
+            self.node.event("info", f"the vehicle's global origin is set: {where} ({sent} SET_GPS_GLOBAL_ORIGIN sent)")
+        else:
+            self.node.event("info", f"the vehicle reports its own global origin ({where}), not --global-origin's: "
+                                    f"kept ({sent} SET_GPS_GLOBAL_ORIGIN sent)")
 
     # -- bus inputs (under the node lock; never block) ----------------------------------------
     def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
@@ -635,7 +702,11 @@ class Px4Link:
         is older than ``preflight_fresh_s``) says no-go and the operator did not override it. An override is an
         event and goes into the published verdict (both recorded)."""
         verdict = self.verdict
-        if verdict is None or time.monotonic() - self.verdict_s > self.config.preflight_fresh_s:
+        fresh = verdict is not None and time.monotonic() - self.verdict_s <= self.config.preflight_fresh_s
+        if override and not fresh:  # no verdict to override yet: said so, not waited for
+            self.node.event("warning", "armed by the operator's override before preflight had judged the vehicle")
+            return ""
+        if not fresh:
             verdict = self.check_preflight()
         if verdict.go:
             return ""
@@ -686,7 +757,8 @@ class Px4Link:
             params_error=error if connected else "", local_position_ok=t.get("local_position_ok"),
             ev_offset_m=offset, mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
             services=self.watch.services(self.node.alive_services(), now), delay_ms=delay,
-            px4_uses_capture_time=ts is not None and ts.px4_converged(), certificate=self.certificate.verdict(network),
+            px4_uses_capture_time=ts is not None and ts.px4_converged(), time_sync_answers=ts.answered if ts else 0,
+            certificate=self.certificate.verdict(network),
             battery_remaining=t["battery"] if math.isfinite(t["battery"]) else -1.0,
             battery_v=t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0)
 
@@ -705,6 +777,7 @@ class Px4Link:
 
     # -- the worker (blocking MAVSDK calls) ----------------------------------------------------
     def _do(self, name: str) -> tuple[bool, str]:
+        started_s = time.monotonic()
         try:
             if name == "offboard_start":
                 with self.node.lock:
@@ -725,7 +798,21 @@ class Px4Link:
                 getattr(self.action, name)()
             return True, f"{name}: accepted by the vehicle"
         except Exception as exc:  # MAVSDK raises ActionError/OffboardError with the vehicle's result
-            return False, f"{name}: {type(exc).__name__}: {exc}"
+            result = getattr(getattr(exc, "result", None), "name", f"{type(exc).__name__}: {exc}")
+            said = self._said_since(started_s)
+            with self.node.lock:
+                return False, self.core.refusal(name, result, time.monotonic(), ready=self.tele["armable"], said=said)
+
+    def _said_since(self, since_s: float, wait_s: float = 0.5) -> str:
+        """PX4's newest warning or worse (STATUSTEXT) after ``since_s`` (it follows a refusal's COMMAND_ACK: waited
+        up to ``wait_s``)."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            said = [text for t, text in self.said if t >= since_s and text.split(":")[0] in
+                    ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")]
+            if said or time.monotonic() >= deadline:
+                return said[-1] if said else ""
+            time.sleep(0.02)
 
     # -- loops ---------------------------------------------------------------------------
     def _watchdog_loop(self) -> None:

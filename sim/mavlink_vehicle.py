@@ -19,7 +19,7 @@ control (PX4's land detector), and disarms 2 s of vehicle time later (PX4's COM_
 COM_OBL_RC_ACT (``sim/px4/neso_quad.params``, read here: 0.3 s, Hold; the last line of defence behind the gateway's
 own failsafe) and, as PX4 does, returns to offboard when setpoints stream again. Disarmed: motors off. It says
 what PX4 v1.16 says in STATUSTEXT for the same events (arming, disarming, land, landing detected, the failsafe);
-it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, as PX4 does. Where it still differs from PX4 SITL:
+it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, and a request for it only once it has one, as PX4 does. Where it still differs from PX4 SITL:
 README, "Real PX4 in the loop".
 
 **Pre-flight checks** (PX4's EKF2 settling on external vision, then commander's arming checks): it is ready
@@ -140,6 +140,7 @@ class MavlinkVehicle:
         self._ev_last_s = -math.inf
         self.ready = False  # its pre-flight checks pass (module docstring)
         self.params = dict(load_params())  # name → value as the airframe file writes it (a point: a float)
+        self.origin: tuple[int, int, int] | None = None  # its EKF global origin (lat, lon deg·1e7, alt mm)
         self._said_ready = False
         self._last_report_s = -math.inf
         self._report_due = False  # a change of the checks' results not yet reported (PX4's rate limit)
@@ -183,7 +184,8 @@ class MavlinkVehicle:
                               "frame": msg.frame_id})
             elif kind == "SET_GPS_GLOBAL_ORIGIN":  # PX4 takes it as its EKF origin and reports it back
                 self._record({"t": now, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
-                self._send(lambda m: m.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, 0))
+                self.origin = (msg.latitude, msg.longitude, msg.altitude)
+                self._send_origin()
             elif kind in ("PARAM_REQUEST_READ", "PARAM_SET", "PARAM_REQUEST_LIST"):
                 self._on_param(msg, kind)
 
@@ -316,6 +318,8 @@ class MavlinkVehicle:
             self._say(severity, said)
         if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             self._send_autopilot_version()
+        if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            self._send_origin()
         if cmd == mavlink.MAV_CMD_DO_SET_MODE or cmd in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
                                                          mavlink.MAV_CMD_COMPONENT_ARM_DISARM):
             self._heartbeat()  # report the new mode at once, as PX4 does
@@ -406,6 +410,12 @@ class MavlinkVehicle:
             status = (mavlink.MAV_STATE_ACTIVE if self.armed else
                       mavlink.MAV_STATE_STANDBY if self.ready else mavlink.MAV_STATE_UNINIT)
         self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, status))
+
+    def _send_origin(self) -> None:
+        """GPS_GLOBAL_ORIGIN when it has one (PX4 sends it only with a valid origin: GPS_GLOBAL_ORIGIN.hpp)."""
+        if self.origin is not None:
+            lat, lon, alt = self.origin
+            self._send(lambda m: m.gps_global_origin_send(lat, lon, alt, 0))
 
     def _send_autopilot_version(self) -> None:
         caps = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
