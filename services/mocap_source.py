@@ -48,7 +48,8 @@ def natnet_offer(mc: MocapConfig):
 def natnet_description(offer, rigid_body: str, **more: str) -> dict[str, str]:
     """The source's description of a NatNet stream (its read-only parameters, recorded with every flight)."""
     info = offer.info
-    return {"kind": "natnet", "natnet_version": offer.version, "server": f"{offer.host}:{offer.port}",
+    return {"kind": "natnet", "natnet_version": ".".join(map(str, info.natnet_version)),
+            "server": f"{offer.host}:{offer.port}",
             "server_app": f"{info.app_name} {'.'.join(map(str, info.app_version))}", "rigid_body": rigid_body, **more}
 
 

@@ -38,7 +38,8 @@ class ServerOffer:
 
     @property
     def version(self) -> str:
-        return ".".join(map(str, self.info.natnet_version))
+        """The NatNet version as Motive states it (``4.1``; its build and revision in :attr:`info`)."""
+        return ".".join(map(str, self.info.natnet_version[:2]))
 
 
 def _ask(sock: socket.socket, address: tuple[str, int], message_id: int, answer_id: int, tries: int,

@@ -116,9 +116,16 @@ class GatewayConfig:
     hold_confirm_s: float = 1.0  # the failsafe's hold commanded and the vehicle still in offboard this long: land
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
-    pose_lost_after_s: float = option(0.1, flag="--pose-lost-after", unit="s",
+    # 0.3 s: longer than the gaps a wireless link has in normal use, so one of them is not taken for a lost motion
+    # capture (which overrides the controller: level flight at hover thrust) — measured by others: UDP every 20 ms
+    # over Wi-Fi, 18 latency spikes above 100 ms in 10 min, 12 above 200 ms, one of 250 ms (C. Huitema, "The weird
+    # case of the wifi latency spikes", 2023); 99th percentile 250 ms over a campus network (Sui et al., MobiSys
+    # 2016); an access point's neighbour scan ~100 ms (dB Performance via SmallNetBuilder, "Wi-Fi Ping Spikes").
+    # Wired and on one machine the gaps are milliseconds (PLATFORM.md: Zenoh p99 0.3-6 ms; NatNet on loopback here
+    # 0 lost frames in 10 s). Blind for 0.3 s on the controller's last tilt (at most --max-tilt-deg) before level.
+    pose_lost_after_s: float = option(0.3, flag="--pose-lost-after", unit="s",
                                       help="without a forwarded state before PX4 is told the motion capture failed "
-                                           "(external-vision odometry quality -1)")
+                                           "(external-vision odometry quality -1) and the vehicle is flown level")
     global_origin: tuple[float, ...] = option(
         PX4_SITL_HOME_LLA, cli=(lambda lla: ",".join(str(v) for v in lla) or "none", parse_lla),
         help="lat_deg,lon_deg,alt_m sent to a vehicle that reports no global origin as its EKF's (SET_GPS_GLOBAL_ORIGIN) "

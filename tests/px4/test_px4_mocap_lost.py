@@ -1,7 +1,7 @@
 """Motion capture lost for a second with real PX4 v1.16.0 SITL (`neso cmd source lose_tracking`, a flight of its
 own): the gateway tells PX4 the external vision failed (ODOMETRY quality -1, which EKF2 does not fuse with
 EKF2_EV_QMIN 1) until states come back. What PX4 and the vehicle do is printed; what is asserted is what the
-runtime promises: PX4 told within the gateway's 0.1 s, back to quality 100 when tracked, the flight recorded."""
+runtime promises: PX4 told within the gateway's pose_lost_after_s (0.3 s), back to quality 100 when tracked, the flight recorded."""
 from __future__ import annotations
 
 import time
