@@ -239,7 +239,10 @@ def _mocap(i: PreflightInputs, c: PreflightConfig) -> list[Item]:
     out.append(Item("motion capture latency", WARNING if late else GO, found,
                     "a wired link from the Motive PC; fewer cameras or a lower resolution in Motive" if late else ""))
     shaky = jitter > c.mocap_jitter_warn_ms
-    out.append(Item("motion capture jitter", WARNING if shaky else GO, f"{jitter:.1f} ms (p99 − p50)",
+    share = m.get("mocap_in_order_share", 1.0)
+    out.append(Item("motion capture jitter", WARNING if shaky else GO,
+                    f"{jitter:.1f} ms (p99 − p50)" + (f"; {100 * (1 - share):.0f} % of the frames overtaken by a newer "
+                                                      "one (not used)" if share < 0.999 else ""),
                     "states keep their capture time, so the flight goes on; look for Wi-Fi or a busy network "
                     "between the Motive PC and here" if shaky else ""))
     gap = m.get("mocap_gap_max_ms", 0.0)

@@ -205,11 +205,14 @@ class MocapSource:
         self._vel = np.zeros(3)
         self._next_publish_s = -math.inf
 
-    def frame(self, t_s: float, pos_m: np.ndarray, quat_wxyz: tuple[float, float, float, float]) -> StateMsg | None:
-        """One mocap frame captured at monotonic ``t_s`` (the frame's own exposure mapped onto this machine's clock,
-        :class:`flight.mocap_time.CaptureClock`; its arrival for a system that gives no time): the state to
-        publish, or None between control ticks. Its ``t_s`` and ``capture_stamp_s`` are the capture's; a frame not
-        newer than the last one must not be given (:meth:`flight.mocap_time.StreamStats.add` tells)."""
+    def frame(self, t_s: float, pos_m: np.ndarray, quat_wxyz: tuple[float, float, float, float],
+              capture_stamp_s: float | None = None) -> StateMsg | None:
+        """One mocap frame taken at ``t_s`` on the stream's own clock (Motive's camera mid-exposure, s; the arrival
+        on this machine's monotonic clock for a system that gives no time): the state to publish, or None between
+        control ticks. ``capture_stamp_s``: that instant on this machine's monotonic clock
+        (:class:`flight.mocap_time.CaptureClock`; default ``t_s``). The state's ``t_s`` counts from the first
+        frame on the stream's clock, so its steps are whole frame intervals; a frame not newer than the last one
+        must not be given (:meth:`flight.mocap_time.StreamStats.add` tells)."""
         if self._t0 is None:
             self._t0 = t_s
         pos = self.enu_from_mocap @ np.asarray(pos_m, dtype=float)
@@ -234,4 +237,4 @@ class MocapSource:
         self.seq += 1
         return StateMsg(seq=self.seq, stamp_s=self.clock(), t_s=t_s - self._t0, pos_enu_m=vec(pos),
                         vel_enu_mps=vec(self._vel), roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, source="mocap",
-                        capture_stamp_s=t_s)
+                        capture_stamp_s=t_s if capture_stamp_s is None else capture_stamp_s)

@@ -112,9 +112,9 @@ def run_sim_natnet(node, config: SourceConfig, world, offer) -> None:
 
 
 class _NatNetFrames:
-    """Frames of a NatNet server through :class:`services.natnet_client.FrameStream`, as (capture monotonic s,
-    arrival monotonic s, pose or None when the rigid body is not tracked); frames out of order are counted and
-    skipped (:class:`flight.mocap_time.StreamStats`)."""
+    """Frames of a NatNet server through :class:`services.natnet_client.FrameStream`, as (Motive's mid-exposure s,
+    its capture on this machine's monotonic clock, arrival s, pose or None when the rigid body is not tracked);
+    frames out of order are counted and ``"late"`` (:class:`flight.mocap_time.StreamStats`)."""
 
     def __init__(self, offer, mc: MocapConfig, stats: StreamStats) -> None:
         from services.natnet_client import FrameStream
@@ -136,9 +136,9 @@ class _NatNetFrames:
             return "late"
         body = next((b for b in frame.bodies if b.id == self.body_id and b.tracked), None)
         if body is None:
-            return capture_s, arrival_s, None
+            return mid_s, capture_s, None
         qx, qy, qz, qw = body.quat_xyzw
-        return capture_s, arrival_s, (np.asarray(body.pos_m), (qw, qx, qy, qz))
+        return mid_s, capture_s, (np.asarray(body.pos_m), (qw, qx, qy, qz))
 
     def close(self) -> None:
         self.stream.close()
@@ -163,7 +163,7 @@ class _LibraryFrames:
         if body is None:
             return now, now, None
         q = body.rotation
-        return now, now, (np.asarray(body.position), (q.w, q.x, q.y, q.z))
+        return now, now, (np.asarray(body.position), (q.w, q.x, q.y, q.z))  # no frame time: its arrival
 
     def close(self) -> None:
         pass
@@ -204,7 +204,7 @@ def run_mocap(node, config: SourceConfig, *, offer=None, n_total: int | None = N
                     watch["stopped_since"] = None
                 if got == "late":
                     continue
-                capture_s, _, pose = got
+                frame_s, capture_s, pose = got
                 if pose is None:
                     if core.seq >= 0:
                         watch["lost_frames"] += 1
@@ -217,7 +217,7 @@ def run_mocap(node, config: SourceConfig, *, offer=None, n_total: int | None = N
                 if watch["lost_since"] is not None:
                     node.event("info", f"rigid body {name!r} tracked again after {now - watch['lost_since']:.2f} s")
                     watch["lost_since"] = None
-                state = core.frame(capture_s, *pose)
+                state = core.frame(frame_s, *pose, capture_stamp_s=capture_s)
                 if state is not None:
                     put_state(state)
                     node.stats.output(time.monotonic() - state.stamp_s)
