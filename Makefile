@@ -53,7 +53,7 @@ test-fast: setup
 bench: setup
 	$(PY) -m bench
 
-# A subset of `make bench` in under 5 minutes (README "Benchmarks"); the full run's sections are listed as not run.
+# A subset of `make bench` in under 5 minutes (docs/benchmarks.md); the full run's sections are listed as not run.
 bench-quick: setup
 	$(PY) -m bench --quick
 

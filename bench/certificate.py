@@ -1,5 +1,5 @@
 """Bench rows: the stability certificates side by side — max certified ``L_N`` of literal, tight, LMI (block and
-full ``P``) and the role certificate (in the state inputs) over a grid of gains with the time each takes, what
+full ``P``) and the role certificate (in the state inputs, the velocity filter's lag in the loop) over a grid of gains with the time each takes, what
 :func:`neso.certificate.best_certificate` and :func:`neso.certificate.flight_budget` (the one the services use) cost
 cold (fresh process), for new gains and cached, and how tight each bound is against a simulated worst case.
 
@@ -26,9 +26,10 @@ def grid_rows(kps=KP, kds=KD, omegas=OMEGA_O) -> list[tuple[str, ...]]:
     """One row per gain set: the max certified ``L_N`` of each method, tight's and the LMI's solve time (cold
     for those gains; the LMI's cvxpy programs already compiled, as in any process after its first call)."""
     from neso import certificate as c
-    from neso.certificate import lmi, roles, tight as tight_method
+    from neso.certificate import POLICY, lmi, roles, tight as tight_method
 
-    lmi._lmi_programs("full"), lmi._lmi_programs("block"), roles._programs()  # compile once, outside the timings
+    lag = POLICY.velocity_lag_s  # the loop the services certify: the measured velocity's lag in it
+    lmi._lmi_programs("full"), lmi._lmi_programs("block"), roles._programs(6, True, False, False)  # compile once
     rows = []
     for kp, kd, w in itertools.product(kps, kds, omegas):
         base = c.CertificateInputs(kp=kp, kd=kd, omega_o=w, lipschitz=0.0)
@@ -42,7 +43,7 @@ def grid_rows(kps=KP, kds=KD, omegas=OMEGA_O) -> list[tuple[str, ...]]:
         roles._frontier.cache_clear()
         roles.max_certified_state_lipschitz.cache_clear()
         t0 = time.perf_counter()
-        role = roles.max_certified_state_lipschitz_verified(kp, kd, w)
+        role = roles.max_certified_state_lipschitz_verified(kp, kd, w, lag)
         t_roles = time.perf_counter() - t0
         flown = " ← flown" if (kp, kd, w) == FLOWN else ""
         rows.append((f"{kp:g}", f"{kd:g}", f"{w:g}{flown}", f"{lit:.4g}", f"{tight:.4g}", f"{block.lmax:.4g}",
@@ -85,7 +86,7 @@ def timing_rows() -> list[tuple[str, str]]:
              f"{t['cold']:.3f}"),
             ("new gains, same process (kp 12)", f"{t['new']:.3f}"),
             ("cached gains", f"{t['cached']:.1e}"),
-            ("flight_budget (role certificate, what the services use), first call: compile + H∞ + bisection",
+            ("flight_budget (the trainer's budget: the verdict the services fly by, bisected), first call",
              f"{t['roles_cold']:.3f}"),
             ("flight_budget, new gains (kp 12)", f"{t['roles_new']:.3f}")]
 

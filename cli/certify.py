@@ -5,13 +5,16 @@ the role certificate, the tightest and the one the services fly by), 1 when it d
 network file that cannot be read, invalid gains).
 
 Methods: ``literal``, ``tight`` and ``lmi`` take the paper's Lemma 1 (the whole input z through ``‖ż‖``);
-``roles`` (:mod:`neso.certificate.roles`) counts only the state inputs (p_z, v_z) in the loop gain and the
-exogenous ones (attitude, thrust) in the constant.
+``roles`` is the verdict the services fly by (:func:`neso.certificate.flight_certificate`): every input in its
+role — the state inputs (p_z, v_z) in the loop gain, the thrust and attitude also in the loop through the
+controller's output (its gain must stay below 1), what the vehicle's limits bound in the constant — with the
+eventual |e_z| bound in cm against PD+ESO's (at most ``max_bound_ratio`` ×) and the mass a thrust input was made
+for. Its JSON's top level carries one ``margin`` (the state slope's headroom the services act on) and ``parts``
+(state, exogenous, loop) beside it.
 
 ``--network FILE|default``: the L_N certified is the network's exact physical Lipschitz constant (the
-SVD product of its weights with the z-scores folded in): of all its inputs for Lemma 1's methods, of its
-state inputs for ``roles`` (its exogenous inputs' figure moves the ultimate bound); ``default`` is the
-network ``neso up`` flies. The gains default to the controller's (z axis) and the observer bandwidth to the
+SVD product of its weights with the z-scores folded in): of all its inputs for Lemma 1's methods, of each role's
+inputs for ``roles``; ``default`` is the network ``neso up`` flies. The gains default to the controller's (z axis) and the observer bandwidth to the
 estimator's.
 
 ``--frontier``: the largest certified L_N of every method over a grid of k_p, k_d, ω_o (a table; ``--json``;
@@ -57,6 +60,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         epilog="exit status: 0 the certificate holds, 1 it fails (for scripts: `neso certify ... && fly`), "
         "2 the input is refused (e.g. an unreadable network file).",
     )
+    from neso.types import VehicleModel
+
     kp, kd, omega_o, _ = _flight_defaults()
     p.add_argument("--kp", type=_numbers, default=(kp,), help="proportional gain, 1/s^2 (default: the controller's z, "
                    f"{kp:g}; --frontier: comma-separated, default {','.join(map(str, FRONTIER_KP))})")
@@ -67,7 +72,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--plot", default=None, metavar="FILE.png", help="with --frontier: a plot of the frontier")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--lipschitz", type=float, help="network Lipschitz constant L_N (physical; for roles: in the "
-                      "state inputs, and the exogenous inputs' taken equal)")
+                      "state inputs of a network with no other input)")
     what.add_argument("--frontier", action="store_true", help="the largest certified L_N of every method over a "
                       "grid of gains (--kp/--kd/--omega-o lists with commas)")
     what.add_argument("--network", metavar="FILE|default",
@@ -78,6 +83,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--ref-vel-max", type=float, default=constants["ref_vel_max"], help="|q*'| bound, m/s (default %(default)s)")
     p.add_argument("--ref-acc-max", type=float, default=constants["ref_acc_max"], help="|q*''| bound, m/s^2 (default %(default)s)")
     p.add_argument("--n-axes", type=int, default=1, help="identical axes (does not change the result)")
+    p.add_argument("--mass-kg", type=float, default=VehicleModel().mass_kg,
+                   help="the vehicle's mass (roles: the loop through a thrust input, and the mass a network with one "
+                        "was made for; default %(default)s)")
     p.add_argument("--lambda-c-rule", choices=("corrected", "paper"), default="corrected",
                    help="lambda_c: 'corrected' sqrt(kp^2+(kd+1)^2) covers the |de/dt| term the paper's Lemma 1 "
                    "drops; 'paper' sqrt(kp^2+kd^2) as printed (default %(default)s)")
@@ -121,9 +129,12 @@ def _network(args) -> tuple[float, dict]:
         raise ValueError(f"no such network file: {path}") from None
     except (OSError, NetworkFileError) as exc:
         raise ValueError(f"{path}: {exc}") from None
+    from neso.certificate import NetworkSlopes
+
     lip = net.certified_lipschitz_physical()
     exo = tuple(i for i in range(net.n_inputs) if i not in net.state_columns)
     return lip, {"path": path, "id": net.metadata.get("id", ""), "feature_set": net.feature_set.key,
+                 "slopes": NetworkSlopes.of(net).to_dict(),
                  "bound_units": net.bound_units, "lipschitz_bound": net.lipschitz_bound,
                  "certified_lipschitz_physical": lip,
                  "certified_lipschitz_state": net.certified_lipschitz_state(),
@@ -146,12 +157,20 @@ def _fmt(v: float) -> str:
 
 
 def _text(res) -> list[str]:
-    if res.method == "roles":
-        return [f"[roles] {'HOLDS' if res.holds else 'FAILS'}",
-                f"  L_N in the state inputs {_fmt(res.lipschitz_state)} (max certified {_fmt(res.max_certified)}), "
-                f"exogenous {_fmt(res.lipschitz_exo)}   [(m/s^2) per unit z, physical]",
-                f"  eventual bound ||E|| <= {_fmt(res.ultimate_bound)} [mixed SI]; C_f = {_fmt(res.C_f)} m/s^3; "
-                f"V' <= -alpha V + mu w^2 (alpha = {_fmt(res.alpha)} 1/s), re-verified in numpy"]
+    if isinstance(res, _Flight):
+        c = res.cert
+        s = c.slopes
+        lines = [f"[roles] {'HOLDS' if c.holds else 'FAILS'}  (what the services fly by)",
+                 f"  slopes by role [(m/s^2) per unit]: state {_fmt(s.state)} (max certified {_fmt(c.max_certified)} at "
+                 f"this loop gain, margin {_fmt(c.margin)}), thrust {_fmt(s.thrust)} /N, attitude {_fmt(s.attitude)} "
+                 f"/rad, speed {_fmt(s.speed)} /(m/s)",
+                 f"  loop through the controller's output: gain {_fmt(c.loop_gain)} (< 1 needed); exogenous rates move "
+                 f"f_N by {_fmt(c.exogenous_rate_mps3)} m/s^3",
+                 f"  eventual |e_z| <= {_fmt(c.bound_cm)} cm over the reference envelope (PD+ESO: {_fmt(c.pdeso_bound_cm)} "
+                 f"cm; ratio {_fmt(c.bound_ratio)}, at most {c.policy.max_bound_ratio:g}); hover: "
+                 f"{_fmt(res.hover[0])} cm (PD+ESO {_fmt(res.hover[1])} cm); re-verified in numpy"]
+        lines += [f"  refused: {r}" for r in c.reasons]
+        return lines
     lines = [
         f"[{res.method}] {'HOLDS' if res.holds else 'FAILS'}",
         f"  alpha_e = {_fmt(res.alpha_e)}   alpha_o = {_fmt(res.alpha_o)}   (margins; > 0 iff holds)",
@@ -172,6 +191,37 @@ def _text(res) -> list[str]:
 
 
 VERDICT = ("holds", "method", "max_certified_lipschitz", "ultimate_bound")  # the top level of the JSON
+
+
+class _Flight:
+    """The role certificate as the services decide with it (:func:`neso.certificate.flight_certificate`), for the
+    CLI's table and JSON: ``cert`` and its bounds at hover ``(network's, PD+ESO's)`` in cm."""
+
+    method = "roles"
+
+    def __init__(self, cert) -> None:
+        from neso.certificate import ReferenceBounds
+
+        self.cert = cert
+        self.holds = cert.holds
+        self.hover = cert.bound_for_cm(ReferenceBounds())
+
+    def to_json_dict(self) -> dict:
+        c = self.cert
+        out = dict(c.to_dict(), method="roles", max_certified_lipschitz=c.max_certified,
+                   ultimate_bound=c.role.to_json_dict()["ultimate_bound"], alpha_e=c.role.to_json_dict()["alpha_e"],
+                   alpha_o=c.role.to_json_dict()["alpha_o"],
+                   hover_bound_cm=self.hover[0] if math.isfinite(self.hover[0]) else None,
+                   hover_pdeso_bound_cm=self.hover[1] if math.isfinite(self.hover[1]) else None,
+                   role=c.role.to_json_dict())
+        out["parts"] = {"state": c.slopes.state, "exogenous": {"thrust": c.slopes.thrust, "attitude": c.slopes.attitude,
+                                                               "speed": c.slopes.speed,
+                                                               "rate_mps3": c.exogenous_rate_mps3},
+                        "loop_gain": c.loop_gain}
+        out["units"] = {"slopes": "(m/s^2) per unit of the input (m, m/s; N; rad; m/s)", "bound_cm": "eventual |e_z|, cm",
+                        "loop_gain": "dimensionless, < 1 needed", "rate_mps3": "m/s^3",
+                        "ultimate_bound": "Euclidean norm of E in mixed SI"}
+        return out
 FIGURES = ("holds", "max_certified_lipschitz", "alpha_e", "alpha_o", "ultimate_bound")  # each method's, compact
 
 
@@ -182,7 +232,13 @@ def _json(args, inputs, results: dict, main, network: dict | None) -> dict:
     full = {name: res.to_json_dict() for name, res in results.items()}
     main_name = next(name for name, res in results.items() if res is main)
     out = {k: full[main_name][k] for k in VERDICT}
-    out["margin"] = None if out["max_certified_lipschitz"] is None else out["max_certified_lipschitz"] - inputs.lipschitz
+    if isinstance(main, _Flight):  # one margin, the one the services act on; each part beside it
+        out.update({k: full[main_name][k] for k in ("margin", "parts", "bound_cm", "pdeso_bound_cm", "bound_ratio",
+                                                      "max_bound_ratio", "hover_bound_cm", "hover_pdeso_bound_cm",
+                                                      "reasons", "text")})
+    else:
+        out["margin"] = (None if out["max_certified_lipschitz"] is None
+                         else out["max_certified_lipschitz"] - inputs.lipschitz)
     out["methods"] = full if args.verbose else {name: {k: d[k] for k in FIGURES} for name, d in full.items()}
     out["inputs"] = {
         "kp": inputs.kp, "kd": inputs.kd, "omega_o": inputs.omega_o, "lipschitz": inputs.lipschitz,
@@ -196,14 +252,14 @@ def _json(args, inputs, results: dict, main, network: dict | None) -> dict:
     return out
 
 
-def _roles(args, inputs, network: dict | None):
-    from neso.certificate import RoleInputs, certify_roles
+def _roles(args, inputs, network: dict | None) -> _Flight:
+    from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
+    from neso.control import ControlConfig
+    from neso.types import VehicleModel
 
-    state = network["certified_lipschitz_state"] if network else inputs.lipschitz
-    exo = network["certified_lipschitz_exogenous"] if network else inputs.lipschitz
-    return certify_roles(RoleInputs(inputs.kp, inputs.kd, inputs.omega_o, lipschitz_state=state, lipschitz_exo=exo,
-                                    L_1=inputs.L_1, exo_rate_max=inputs.L_u, ref_vel_max=inputs.ref_vel_max,
-                                    ref_acc_max=inputs.ref_acc_max))
+    slopes = NetworkSlopes.from_dict(network["slopes"]) if network else NetworkSlopes(inputs.lipschitz)
+    plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=args.mass_kg)))
+    return _Flight(flight_certificate(slopes, kp=inputs.kp, kd=inputs.kd, omega_o=inputs.omega_o, plant=plant))
 
 
 def frontier_rows(kps, kds, omegas) -> list[dict]:

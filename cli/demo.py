@@ -15,7 +15,7 @@ The two lemniscates are paired: before each, the simulated world restarts (the s
 command: same scenario, same seed, so the same gust and mocap-noise streams) and the lemniscate is
 commanded once the world's clock reaches ``PAIRED_START_T_S``. Without that, the second run met a
 minute-later stretch of the same turbulence, and the same network's two runs differed by −10 % to
-+24 % (README, "The TDR loop, live"); paired, the difference is the network's. When the candidate is
++24 % (docs/tdr.md, "The live loop"); paired, the difference is the network's. When the candidate is
 not offered, the second run flies the same network again: the pairing's own residual.
 
 With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an

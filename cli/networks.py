@@ -26,12 +26,14 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
     """One row per network file under ``folder`` (the registry's excepted), shaped like a registry
     row, ``where: shipped``; the small-gain verdict at the trainer's z gains (the registry's
     convention), at the network's certified physical bound."""
-    from neso.certificate import flight_certificate
+    from neso.certificate import LoopPlant
+    from neso.control import ControlConfig
     from neso.netfile import NetworkFileError, load_network
-    from flight.estimator import DEFAULT_NETWORK, shipped
+    from flight.estimator import DEFAULT_NETWORK, network_certificate, shipped
     from services.trainer import TrainerConfig
 
     gains = TrainerConfig()
+    plant = LoopPlant.of(ControlConfig())
     flown_by_default = Path(shipped(DEFAULT_NETWORK)).resolve()
     rows = []
     for path in sorted(Path(folder).rglob("*.safetensors")):
@@ -44,13 +46,14 @@ def shipped_rows(folder: str, registry: Path) -> list[dict]:
             continue
         meta = net.metadata
         certified = net.certified_lipschitz_physical()
-        cert = flight_certificate(net.certified_lipschitz_state(), kp=gains.kp, kd=gains.kd, omega_o=gains.omega_o_rps)
+        cert = network_certificate(net, gains.kp, gains.kd, gains.omega_o_rps, plant)
         val = meta.get("val_loss")
         rows.append({"where": "shipped", "id": meta.get("id", path.stem), "vehicle": meta.get("vehicle", ""),
                      "label": meta.get("training_data", "").split(":")[0], "parent": "" if meta.get("warm_start", "no") == "no" else meta["warm_start"],
                      "training_data": meta.get("training_data", ""), "lipschitz_norm": net.lipschitz_bound,
                      "lipschitz_phys": net.lipschitz_bound_physical(), "certified_phys": certified,
-                     "val_loss": float(val) if val else None, **net.learned, "certificate_holds": cert.holds, "feature_set": net.feature_set.key,
+                     "val_loss": float(val) if val else None, **net.learned, "certificate_holds": cert.holds,
+                     "certificate": cert.to_dict(), "feature_set": net.feature_set.key,
                      "flown_by_default": path.resolve() == flown_by_default, "path": str(path)})
     return rows
 

@@ -60,5 +60,5 @@ def init(args) -> int:
     print(f"  {CA_FILE} (the CA: copy to every machine), {CA_KEY_FILE} (0600: keep it here, never copy it)")
     print(f"  certificate + key (0600) for: {', '.join(names)}; valid {args.days:g} days; hosts {', '.join(hosts)}")
     print(f"  router configs: {', '.join(routers)}")
-    print("use: neso up --secure   (other machines: README, 'A second machine on a secure bus')")
+    print("use: neso up --secure   (other machines: docs/secure-bus.md, 'A second machine')")
     return 0

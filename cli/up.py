@@ -56,6 +56,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--px4-instance", type=int, default=0, choices=range(10), metavar="0-9",
                    help="--vehicle px4: PX4 SITL instance of the first vehicle (the next: +1, …); its ports are 4560, 14540, "
                         "14580, 18570 + instance")
+    p.add_argument("--mass-kg", type=float, default=ctl.mass_kg,
+                   help="the vehicle's mass as the controller flies it (its thrust in newtons is for it); the estimator "
+                        "certifies what flies for it, and refuses a network with a thrust input made for another mass")
     p.add_argument("--gains", default=None, choices=tuple(GAIN_SETS),
                    help="the controller's start-up gains (live parameters after): paper, or px4 (xy softer for PX4's "
                         "slower attitude loop; the default with --vehicle px4, paper otherwise)")
@@ -117,13 +120,14 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--scenario", args.scenario, "--seed", str(args.seed + index), "--rate", str(args.rate),
                     "--start", args.start, "--duration", str(args.duration), "--wait-for", wait_for]
     elif role == "estimator":
-        specific = ["--pathway", args.pathway, "--rate", str(args.rate)]
+        specific = ["--pathway", args.pathway, "--rate", str(args.rate), "--mass-kg", str(args.mass_kg)]
         if args.network is not None:
             specific += ["--network", args.network]
         if args.allow_uncertified:
             specific += ["--allow-uncertified"]
     elif role == "controller":
-        specific = ["--mission", args.mission, "--rate", str(args.rate), "--gains", controller_gains(args)]
+        specific = ["--mission", args.mission, "--rate", str(args.rate), "--gains", controller_gains(args),
+                    "--mass-kg", str(args.mass_kg)]
     elif role == "recorder":
         specific = ["--recordings-dir", args.recordings_dir]
     elif role == "trainer":
@@ -335,7 +339,7 @@ def run(args) -> int:
               f"the rest on {list(other_cpus)} (--no-isolate: any)", flush=True)
         cpu_list = ",".join(map(str, other_cpus))
         print(f"  a browser here:   taskset -c {cpu_list} chromium ...  keeps it off the loop's CPUs "
-              "(README 'The hot path': what pages on the loop's CPU cost it)", flush=True)
+              "(docs/benchmarks.md 'The hot path': what pages on the loop's CPU cost it)", flush=True)
     if sharing_processes(args):
         print(f"  processes:        one {', one '.join(SHARED_ROLES)} for all {len(vehicles)} vehicles, a source each "
               "(--no-process-per-role: one per vehicle)", flush=True)

@@ -47,22 +47,41 @@ LEVELS = ("ok", "info", "warn", "bad", "off")  # of a status item: green, blue, 
 @dataclass(frozen=True)
 class Certificate:
     """The stability certificate the estimator reports for what flies (see :mod:`neso.certificate`).
-    ``lipschitz_phys`` and ``max_lipschitz_phys`` in (m/s²) per unit z; ``margin`` their difference."""
+    ``lipschitz_phys`` and ``max_lipschitz_phys`` in (m/s²) per unit z; ``margin`` their difference;
+    ``bound_cm``/``pdeso_bound_cm``: the eventual |e_z| bound for the segment being flown, the network's and
+    PD+ESO's (NaN when the estimator states none); ``segment``: which."""
 
     holds: bool
     margin: float
     max_lipschitz_phys: float
     lipschitz_phys: float
     text: str
+    bound_cm: float = math.nan
+    pdeso_bound_cm: float = math.nan
+    segment: str = ""
 
     @staticmethod
     def of(report: dict) -> "Certificate | None":
         """From ``NetworkMsg.certificate`` (None when it is not a complete verdict)."""
         try:
             return Certificate(bool(report["holds"]), float(report["margin"]), float(report["max_certified"]),
-                               float(report["lipschitz_phys"]), str(report["text"]))
+                               float(report["lipschitz_phys"]), str(report["text"]),
+                               _number(report.get("segment_bound_cm")), _number(report.get("segment_pdeso_bound_cm")),
+                               str(report.get("segment", "")))
         except (KeyError, TypeError, ValueError):
             return None
+
+    @property
+    def bound_text(self) -> str:
+        """``|e_z| ≤ 2.1 cm (PD+ESO 1.4, hover)``, or "" without a bound."""
+        if not math.isfinite(self.bound_cm):
+            return ""
+        where = f", {self.segment}" if self.segment else ""
+        return f"|e_z| ≤ {self.bound_cm:.3g} cm (PD+ESO {self.pdeso_bound_cm:.3g}{where})"
+
+
+def _number(v) -> float:
+    return float(v) if isinstance(v, (int, float)) else math.nan
 
 
 @dataclass(frozen=True)
@@ -82,7 +101,8 @@ def certificate_shown(v: "VehicleModel") -> CertificateShown:
     cert = v.certificate()
     if cert is None:
         return CertificateShown("waiting…", "waiting for the estimator's network report", "off")
-    return CertificateShown("HOLDS" if cert.holds else "FAILS", cert.text, "ok" if cert.holds else "bad", cert)
+    text = f"{cert.bound_text} — {cert.text}" if cert.bound_text else cert.text
+    return CertificateShown("HOLDS" if cert.holds else "FAILS", text, "ok" if cert.holds else "bad", cert)
 
 
 @dataclass
@@ -427,7 +447,9 @@ def status_line(v: VehicleModel, now_s: float, cert: CertificateShown, *, dashbo
         items.append(StatusItem("network", f"{active}{' + candidate' if shadow else ''}", "info" if shadow else "ok",
                                 "candidate in shadow" if shadow else "the network the estimator flies"))
     # certificate
-    items.append(StatusItem("certificate", f"cert {cert.word}", cert.level, cert.text))
+    bound = cert.certificate.bound_cm if cert.certificate is not None else math.nan
+    items.append(StatusItem("certificate", f"cert {cert.word}" + (f" ≤{bound:.2g} cm" if math.isfinite(bound) else ""),
+                            cert.level, cert.text))
     # recording
     if rec is None:
         items.append(StatusItem("recording", "no recorder", "warn", "nothing records this vehicle"))

@@ -65,6 +65,11 @@ def pose_text(v: VehicleModel) -> str:
             f"yaw {math.degrees(state.yaw_rad):+.1f}°")
 
 
+def cell(text: str) -> str:
+    """``text`` for a markdown table cell: its pipes (``|e_z|``) escaped, so they do not split the row."""
+    return text.replace("|", "\\|")
+
+
 def figures_markdown(v: VehicleModel, now_s: float, cert) -> str:
     """Pose, reference and the table of figures (tracking, rate, misses, latency, network, certificate)."""
     state, est, ref, net = (v.latest.get(k) for k in ("state", "estimate", "reference", "network"))
@@ -91,7 +96,7 @@ def figures_markdown(v: VehicleModel, now_s: float, cert) -> str:
         f"| network | `{est.network_id if est else '–'}` ({origin[:120]}) |",
         f"| L_N physical / normalised | {fmt(lp, '.4g')} (m/s²)/unit z / {fmt(ln, '.4g')} |",
         f"| ω_o | {fmt(v.omega_o_rps(), '.1f', ' rad/s')} |",
-        f"| certificate | {cert.text} |",
+        f"| certificate | {cell(cert.text)} |",
         f"| canary | {(net.canary.get('last') or 'idle') if net is not None else '–'} |",
         f"| recording | {recording_text(v)} |",
     ])

@@ -30,7 +30,7 @@ import numpy as np
 from flight import forget_older
 from flight.mission import COMMANDS, Mission, MissionConfig
 from flight.ratecheck import RateCheck
-from neso.certificate import flight_budget, flight_certificate
+from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
 from neso.control import GAIN_SETS, ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
@@ -140,28 +140,38 @@ class ControllerCore:
     def on_network(self, msg: NetworkMsg) -> None:
         self.network_certificate = dict(msg.certificate)
 
-    def _certificate_inputs(self) -> tuple[float, float] | None:
+    def _certificate_inputs(self) -> tuple[NetworkSlopes, float] | None:
+        """(the flown network's slopes, ω_o) from the estimator's latest report, or None."""
         c = self.network_certificate
-        lip, omega = c.get("lipschitz_phys"), c.get("omega_o")
-        if isinstance(lip, (int, float)) and isinstance(omega, (int, float)) and omega > 0:
-            return float(lip), float(omega)
-        return None
-
-    def prepare_gains(self, values: dict) -> None:
-        """Compute (and cache) the certified bound for the proposed z gains, outside any lock."""
-        inputs = self._certificate_inputs()
-        if inputs is not None:
-            flight_budget(float(values["kp_z"]), float(values["kd_z"]), inputs[1])
-
-    def check_gains(self, values: dict) -> Refusal | None:
-        """Refuse (overridably) z gains under which the network flown is not certified."""
-        kp, kd = float(values["kp_z"]), float(values["kd_z"])
-        if (kp, kd) == (self.config.control.kp[2], self.config.control.kd[2]):
+        omega = c.get("omega_o")
+        try:
+            slopes = NetworkSlopes.from_dict(c["slopes"])
+        except (KeyError, TypeError, ValueError):
             return None
+        return (slopes, float(omega)) if isinstance(omega, (int, float)) and omega > 0 else None
+
+    def _gain_certificate(self, values: dict):
         inputs = self._certificate_inputs()
         if inputs is None:
+            return None
+        control = replace(self.config.control, vehicle=replace(self.config.control.vehicle,
+                                                               mass_kg=float(values.get("mass_kg", self.config.mass_kg))))
+        return flight_certificate(inputs[0], kp=float(values["kp_z"]), kd=float(values["kd_z"]), omega_o=inputs[1],
+                                  plant=LoopPlant.of(control))
+
+    def prepare_gains(self, values: dict) -> None:
+        """Compute (and cache) the certificate for the proposed z gains and mass, outside any lock."""
+        self._gain_certificate(values)
+
+    def check_gains(self, values: dict) -> Refusal | None:
+        """Refuse (overridably) z gains or a vehicle mass under which the network flown is not certified."""
+        kp, kd = float(values["kp_z"]), float(values["kd_z"])
+        mass = float(values.get("mass_kg", self.config.mass_kg))
+        if (kp, kd, mass) == (self.config.control.kp[2], self.config.control.kd[2], self.config.mass_kg):
+            return None
+        cert = self._gain_certificate(values)
+        if cert is None:
             return Refusal("certificate unknown (no network report from the estimator yet)", overridable=True)
-        cert = flight_certificate(inputs[0], kp=kp, kd=kd, omega_o=inputs[1])
         return None if cert.holds else Refusal(cert.text(), overridable=True)
 
     # -- operator inputs (applied at the next sample) ---------------------------------------

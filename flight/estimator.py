@@ -52,7 +52,7 @@ rollback never undoes the first.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -60,15 +60,16 @@ import numpy as np
 
 from flight import forget_older
 from flight.hotswap import Canary, CanaryConfig, GateVerdict, ShadowError, gate
+from flight.mission import segment_reference_bounds
 from flight.ratecheck import RateCheck
-from neso.certificate import FlightCertificate, flight_budget, flight_certificate
+from neso.certificate import FlightCertificate, LoopPlant, NetworkSlopes, ReferenceBounds, flight_certificate
 from neso.control import ControlConfig, PositionController
 from neso.eso import EsoConfig
 from neso.estimator import AppliedControl, NeuralESO, NeuralEsoConfig
 from neso.features import FeatureBuilder
 from neso.netfile import NetworkFileError, load_network
 from neso.network import LipschitzMLP
-from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS, PATHWAYS
+from neso.types import LOOP_PERIOD_S, OMEGA_O_RPS, PATHWAYS, VehicleModel
 from runtime.options import option, rate_of_period
 from runtime.params import Param, Refusal
 from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, StateMsg, state_measurement, vec
@@ -78,6 +79,7 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]  # the checkout: where networ
 SHADOW_WINDOW = 250  # samples: 5 s at 50 Hz
 MAX_NETWORK_FILE_BYTES = 10_000_000
 PRIOR_PATHWAYS = ("neural_eso", "nn")  # pathways that fly the network
+SEGMENT_BOUNDS = segment_reference_bounds()  # the z reference of each mission segment: what the |e_z| bound is for
 
 
 @dataclass(frozen=True)
@@ -85,7 +87,8 @@ class EstimatorConfig:
     """``network``: the network file flown (``""``: none; nn/neural_eso then predict 0).
     ``network_dir``: where networks trained for other bounds are looked for (default: the
     network's own directory). ``allow_uncertified``: fly a start-up network whose certificate
-    fails. ``canary``: the rollback watch after a promotion."""
+    fails. ``mass_kg``: the vehicle's mass until the controller says otherwise. ``canary``: the
+    rollback watch after a promotion."""
 
     network: str = option(DEFAULT_NETWORK, help="network file flown ('' for none)")
     network_dir: str = option("", help="networks trained for other L_N ('': the network's own directory)")
@@ -96,6 +99,9 @@ class EstimatorConfig:
     lockstep: bool = False
     allow_uncertified: bool = option(False, help="fly a start-up network whose stability certificate fails "
                                                  "(recorded as an event)")
+    mass_kg: float = option(VehicleModel().mass_kg, unit="kg", help="the vehicle's mass, as the controller flies it "
+                            "(the certificate's loop gain; a network with a thrust input in newtons is for one mass); "
+                            "the controller's live parameter updates it")
     canary: CanaryConfig = option(default_factory=CanaryConfig, nested=True)
 
 
@@ -171,8 +177,9 @@ class EstimatorCore:
         self.clock = clock
         self.choice = choice
         self.vehicle = vehicle
-        control = ControlConfig(dt_s=config.dt_s)
+        control = ControlConfig(dt_s=config.dt_s, vehicle=VehicleModel(mass_kg=config.mass_kg))
         self.gains_z = (control.kp[2], control.kd[2])  # until the controller says otherwise
+        self.plant = LoopPlant.of(control)
         self.events: list[tuple[str, str]] = []
         self.network_id = network.metadata.get("id", "unnamed") if network is not None else "none"
         self.active_info = _describe(network, "file", choice.source)
@@ -202,11 +209,10 @@ class EstimatorCore:
     # -- the certificate -------------------------------------------------------------------
     def certificate_of(self, net: LipschitzMLP | None, gains_z: tuple[float, float] | None = None,
                        bound: float | None = None) -> FlightCertificate:
-        """The certificate of flying ``net`` (its exact physical Lipschitz constant in its state inputs; 0 without
-        one) under an L_N ``bound`` the operator set (None: the network's own figure counts)."""
+        """The certificate of flying ``net`` (its exact physical slopes by input role; none without one) under an L_N
+        ``bound`` the operator set on its state inputs (None: the network's own figure counts)."""
         kp, kd = gains_z or self.gains_z
-        lip = net.certified_lipschitz_state() if net is not None else 0.0
-        return flight_certificate(max(lip, bound or 0.0), kp=kp, kd=kd, omega_o=self.config.omega_o_rps)
+        return network_certificate(net, kp, kd, self.config.omega_o_rps, self.plant, bound=bound)
 
     def certificate(self) -> FlightCertificate:
         """The verdict for the network flying now, under the L_N the operator set (a bound above the certificate
@@ -214,15 +220,18 @@ class EstimatorCore:
         net = self.estimator.network
         return self.certificate_of(net, bound=self.bound_in_force if net is not None else None)
 
-    def set_gains(self, kp_z: float, kd_z: float) -> str | None:
-        """The controller's z gains changed (its parameter broadcast); a note if the certificate now fails."""
+    def set_gains(self, kp_z: float, kd_z: float, mass_kg: float | None = None) -> str | None:
+        """The controller's z gains (and vehicle mass) changed (its parameter broadcast); a note if the certificate
+        now fails."""
         self.gains_z = (float(kp_z), float(kd_z))
+        if mass_kg is not None:
+            self.plant = LoopPlant(float(mass_kg), self.plant.force_rate_limit_nps, self.plant.max_tilt_rad)
         self.changes += 1
         cert = self.certificate()
-        return None if cert.holds else f"controller gains changed: {cert.text()}"
+        return None if cert.holds else f"controller gains or mass changed: {cert.text()}"
 
     def prepare(self, values: dict) -> None:
-        flight_budget(self.gains_z[0], self.gains_z[1], self.config.omega_o_rps)  # warm the cache
+        self.certificate()  # warm the cache: the SDPs are solved outside the node lock
 
     # -- live parameters ----------------------------------------------------------------
     def check(self, values: dict) -> str | Refusal | None:
@@ -254,7 +263,8 @@ class EstimatorCore:
             loaded = self.choice.loaded.lipschitz_bound_physical()
             self.bound_in_force = None if _same_bound(changed["lipschitz_bound"], loaded) else changed["lipschitz_bound"]
             self.network_id = f"{net.metadata.get('id', 'unnamed')}@L{changed['lipschitz_bound']:.4g}"
-            path = next((p for n, p in self.choice.trained.values() if n is net), None)
+            path = next((p for b, (_, p) in self.choice.trained.items()  # the file trained for it (maybe scaled by
+                         if _same_bound(b, changed["lipschitz_bound"])), None)  # a hair to what was typed)
             self.active_info = _describe(net, "scaled" if path is None else "file", path or self.choice.source,
                                          self.network_id)
             self.changes += 1
@@ -344,8 +354,13 @@ class EstimatorCore:
         if self.candidate is not None:
             candidate = dict(self.candidate[1], shadow_samples=self.shadow.samples,
                              active_error_rms_mps2=self.active_shadow.rms())
-        cert = self.certificate().to_dict()
-        cert.update(pathway=self.estimator.pathway, covers=self.estimator.pathway in ("neural_eso", "eso", "none"))
+        verdict = self.certificate()
+        cert = verdict.to_dict()
+        segment = self._segment[0]
+        bound, pdeso = verdict.bound_for_cm(SEGMENT_BOUNDS.get(segment, ReferenceBounds.envelope()))
+        cert.update(pathway=self.estimator.pathway, covers=self.estimator.pathway in ("neural_eso", "eso", "none"),
+                    segment=segment, segment_bound_cm=bound if math.isfinite(bound) else None,
+                    segment_pdeso_bound_cm=pdeso if math.isfinite(pdeso) else None)
         return NetworkMsg(stamp_s=self.clock(), seq=max(self._last_seq, 0), active=self.active_info,
                           candidate=candidate,
                           previous=self.previous[1] if self.previous is not None else {},
@@ -477,14 +492,25 @@ def load_flown_network(path: str) -> tuple[LipschitzMLP | None, str]:
     return load_network(path, expected_outputs=1), path
 
 
+def network_certificate(net: LipschitzMLP | None, kp: float, kd: float, omega_o: float, plant: LoopPlant, *,
+                        bound: float | None = None) -> FlightCertificate:
+    """The one verdict on flying ``net`` (None: no network) with z gains ``kp`` (1/s²), ``kd`` (1/s), ``omega_o``
+    (rad/s) on ``plant``, its state slope raised to an operator's L_N ``bound`` when that is higher: what the
+    estimator's start, its gate and promotions, and the trainer all ask (:func:`neso.certificate.flight_certificate`)."""
+    slopes = NetworkSlopes.of(net) if net is not None else NetworkSlopes(0.0)
+    if bound is not None and bound > slopes.state:
+        slopes = replace(slopes, state=float(bound))
+    return flight_certificate(slopes, kp=kp, kd=kd, omega_o=omega_o, plant=plant)
+
+
 def startup_network(config: EstimatorConfig, network: LipschitzMLP | None, core_gains: tuple[float, float]
                     ) -> tuple[LipschitzMLP | None, tuple[str, str] | None]:
     """The network to fly at start-up and an event about it: one whose certificate fails is not flown
     unless ``allow_uncertified``."""
     if network is None:
         return None, None
-    cert = flight_certificate(network.certified_lipschitz_state(), kp=core_gains[0], kd=core_gains[1],
-                              omega_o=config.omega_o_rps)
+    plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=config.mass_kg)))
+    cert = network_certificate(network, core_gains[0], core_gains[1], config.omega_o_rps, plant)
     if cert.holds:
         return network, ("info", f"network {config.network}: {cert.text()}")
     if config.allow_uncertified:

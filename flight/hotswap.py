@@ -169,7 +169,7 @@ class Canary:
     how much two windows of the same flight differ by chance, measured on the window before (the
     spread of its blocks' log-RMS, scaled to a window and to a ratio of two, times ``confidence_z``).
     Measured at hover in the simulator: an equal network is rolled back in 5 % of 10 s windows, one with
-    80 % more error caught in 84 % (README "Canary"). Before that, the tripwire rolls back at once a
+    80 % more error caught in 84 % (docs/tdr.md "The canary"). Before that, the tripwire rolls back at once a
     network that makes the error grow several-fold (at hover the RMS of 1 s never exceeded 2.6 times that of
     the 10 s before it in 400 s of a good network's flight). Once decided, the canary is disarmed.
     """

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from neso.certificate import ReferenceBounds
 from neso.trajectories import Landing, Lemniscate
 from neso.types import Reference
 
@@ -33,6 +34,7 @@ class MissionConfig:
     lemniscate_cycles: int = 5
     transit_speed_mps: float = 0.4  # mean speed of a transit or take-off
     land_speed_mps: float = 0.3
+    min_transit_s: float = 1.0  # a transit, take-off or land never takes less
     at_point_tol_m: float = 0.02  # closer than this, no transit is flown
     landed_height_m: float = 0.04  # measured height under which a landing is complete
     # ... or: the land reference has been on the floor this long and the vehicle is this low (a vehicle
@@ -129,7 +131,7 @@ class Mission:
             self._append("hover", _Hold(start), t + lem.duration_s, math.inf)
         elif name == "land":
             ground = (here[0], here[1], -0.05)  # a little below the floor so contact is certain
-            duration = max(1.0, (here[2] - ground[2]) / c.land_speed_mps)
+            duration = max(c.min_transit_s, (here[2] - ground[2]) / c.land_speed_mps)
             self._append("land", _Transit(here, ground, duration), t_s, math.inf)
 
     def hold(self, t_s: float, pos_enu_m: np.ndarray) -> bool:
@@ -156,7 +158,7 @@ class Mission:
         distance = math.dist(a, b)
         if distance <= self.config.at_point_tol_m:
             return t_s
-        duration = max(1.0, distance / self.config.transit_speed_mps)
+        duration = max(self.config.min_transit_s, distance / self.config.transit_speed_mps)
         self._append(name, _Transit(a, b, duration), t_s, duration)
         return t_s + duration
 
@@ -186,3 +188,33 @@ class Mission:
             self.idle, self._segments, self.segment = True, [], "idle"
             return True
         return False
+
+
+# The quintic 0→1 over unit time (neso.trajectories' smoothstep and the transits'): its largest speed, acceleration
+# and jerk are 15/8, 10/√3 and 60 (at s = 1/2, s = 1/2 ∓ √3/6, and the ends)
+_QUINTIC_PEAKS = (15.0 / 8.0, 10.0 / math.sqrt(3.0), 60.0)
+
+
+def _quintic_bounds(distance_m: float, duration_s: float) -> ReferenceBounds:
+    v, a, j = _QUINTIC_PEAKS
+    return ReferenceBounds(v * distance_m / duration_s, a * distance_m / duration_s ** 2, j * distance_m / duration_s ** 3)
+
+
+def _steepest_transit(speed_mps: float, min_duration_s: float) -> ReferenceBounds:
+    """The largest z derivatives of any transit at ``speed_mps`` mean speed over at least ``min_duration_s`` (the
+    distance ``speed × min_duration`` is the steepest: shorter ones are slower, longer ones take longer)."""
+    return _quintic_bounds(speed_mps * min_duration_s, min_duration_s)
+
+
+def segment_reference_bounds(config: MissionConfig = MissionConfig()) -> dict[str, ReferenceBounds]:
+    """Bounds on the z reference's speed (m/s), acceleration (m/s²) and jerk (m/s³) in each mission segment flown
+    with ``config`` (the names :attr:`Mission.segment` reports): the stability certificate states its |e_z| bound
+    for the segment being flown (:meth:`neso.certificate.FlightCertificate.bound_for_cm`)."""
+    c = config
+    landing = Landing(start_height_m=c.landing_start_height_m, end_height_m=c.landing_end_height_m)
+    still = ReferenceBounds()
+    transit = _steepest_transit(c.transit_speed_mps, c.min_transit_s)
+    return {"idle": still, "hover": still, "hold": still, "lemniscate": still,  # the figure eight is flat in z
+            "takeoff": transit, "transit": transit,
+            "landing_test": _quintic_bounds(abs(landing.start_height_m - landing.end_height_m), landing.descent_s),
+            "land": _steepest_transit(c.land_speed_mps, c.min_transit_s)}

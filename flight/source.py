@@ -30,7 +30,7 @@ import numpy as np
 
 from neso.control import ControlConfig, PositionController
 from neso.rotations import euler_zyx_from_world_from_body
-from neso.types import LOOP_RATE_HZ, AttitudeSetpoint
+from neso.types import LOOP_RATE_HZ, VEL_CUTOFF_HZ, AttitudeSetpoint
 from runtime.options import comma_list, option
 from runtime.schema import SetpointMsg, StateMsg, TruthMsg, vec
 from sim.scenarios import SCENARIOS
@@ -58,7 +58,7 @@ class MocapConfig:
     frame: str = option("y_up", help=f"mocap frame: {sorted(FRAMES)} or 9 numbers (ENU from mocap, row-major)")
     stream_timeout_s: float = option(0.5, flag="--stream-timeout", unit="s",
                                      help="no frame for this long: the stream has stopped (an event)")
-    vel_cutoff_hz: float = 15.0
+    vel_cutoff_hz: float = VEL_CUTOFF_HZ
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,12 @@ estimator builds exactly those features for it and refuses a file whose set it c
                    flight controller's output rather than the outer-loop command.
 =================  ==========================================================================
 
-Which columns are the tracked state (position and velocity of the network's axis) matters to
-the stability certificate: their rates depend on the tracking and observer errors (paper
-Lemma 1); every other column has a rate bounded by a constant (attitude and thrust through the
-force-increment limit, speed through the tilt limit). ``FeatureSet.state_columns`` says which.
+Each column's *role* matters to the stability certificate (:mod:`neso.certificate.roles`): the
+tracked ``state`` (position and velocity of the network's axis), whose rates are the tracking and
+observer errors'; the ``thrust``, which the controller makes from the network's own output (the
+loop through ``u_z``); the ``attitude``, moved by the horizontal force and, through the tilt of
+the force, by that loop too; the horizontal ``speed``, whose rate the tilt limit bounds.
+``FeatureSet.state_columns`` and ``FeatureSet.role_columns`` say which.
 
 Signals (:class:`FeatureSignals`) are scalars for one sample or arrays of N samples; the same
 code builds both, so the features the estimator flies and the ones a dataset trains on are
@@ -61,13 +63,20 @@ class FeatureSignals:
                               thrust_prev_n, thrust_applied_n)
 
 
+ROLES = ("state", "thrust", "attitude", "speed")
+
+
 @dataclass(frozen=True, slots=True)
 class Column:
-    """One input: its unit, whether it is the tracked state (see module docstring), and how to build it."""
+    """One input: its unit, its role (:data:`ROLES`, see module docstring), and how to build it."""
 
     unit: str
-    tracked_state: bool
+    role: str
     build: Callable[[FeatureSignals], float | np.ndarray]
+
+    @property
+    def tracked_state(self) -> bool:
+        return self.role == "state"
 
 
 def _speed_xy(s: FeatureSignals):
@@ -76,13 +85,13 @@ def _speed_xy(s: FeatureSignals):
 
 
 COLUMNS: dict[str, Column] = {
-    "pos_z_m": Column("m", True, lambda s: np.asarray(s.pos_enu_m)[..., 2]),
-    "vel_z_mps": Column("m/s", True, lambda s: np.asarray(s.vel_enu_mps)[..., 2]),
-    "thrust_prev_n": Column("N", False, lambda s: s.thrust_prev_n),
-    "thrust_applied_n": Column("N", False, lambda s: s.thrust_applied_n),
-    "roll_rad": Column("rad", False, lambda s: s.roll_rad),
-    "pitch_rad": Column("rad", False, lambda s: s.pitch_rad),
-    "speed_xy_mps": Column("m/s", False, _speed_xy),
+    "pos_z_m": Column("m", "state", lambda s: np.asarray(s.pos_enu_m)[..., 2]),
+    "vel_z_mps": Column("m/s", "state", lambda s: np.asarray(s.vel_enu_mps)[..., 2]),
+    "thrust_prev_n": Column("N", "thrust", lambda s: s.thrust_prev_n),
+    "thrust_applied_n": Column("N", "thrust", lambda s: s.thrust_applied_n),
+    "roll_rad": Column("rad", "attitude", lambda s: s.roll_rad),
+    "pitch_rad": Column("rad", "attitude", lambda s: s.pitch_rad),
+    "speed_xy_mps": Column("m/s", "speed", _speed_xy),
 }
 
 
@@ -118,6 +127,11 @@ class FeatureSet:
         return tuple(i for i, c in enumerate(self.columns) if COLUMNS[c].tracked_state)
 
     @property
+    def role_columns(self) -> dict[str, tuple[int, ...]]:
+        """Indices of the columns of each role (:data:`ROLES`; a role with none maps to ``()``)."""
+        return {role: tuple(i for i, c in enumerate(self.columns) if COLUMNS[c].role == role) for role in ROLES}
+
+    @property
     def uses_applied_thrust(self) -> bool:
         return "thrust_applied_n" in self.columns
 
@@ -137,7 +151,7 @@ FEATURE_SETS: dict[str, FeatureSet] = {fs.key: fs for fs in (
                "state and the applied thrust through the identified lag [p_z, v_z, T_applied, roll, pitch]"),
 )}
 PAPER_FEATURE_SET = "paper@1"
-#: The default for new networks, chosen by measurement (README "What the simulation shows"): without any
+#: The default for new networks, chosen by measurement (docs/method.md "What the simulation shows"): without any
 #: thrust input it cannot learn the feedback identity at any bound; with the applied thrust and the LMI's
 #: certified bound (1.49 > 1/m) a network did, and the noise-free landing limit-cycled.
 DEFAULT_FEATURE_SET = "state@1"

@@ -28,14 +28,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neso.features import (DEFAULT_FEATURE_SET, PAPER_FEATURE_SET, FeatureSet, FeatureSignals, ThrustLag,
-                           applied_thrust_series)
+                           applied_thrust_series, feature_set)
 from neso.types import GRAVITY_MPS2, VehicleModel
 
 LABELS = ("eso", "tdr", "applied")
 #: The pathway a flight must have flown for a label taken from its estimates.
 LABEL_PATHWAYS = {"eso": ("eso",), "tdr": ("neural_eso",), "applied": None}
 #: The zero-phase low-pass under the measured acceleration, Hz. Chosen on simulated flights against the
-#: truth (README "Labels"): 3 Hz on the position beat 2 and 5 Hz and every cutoff on the velocity.
+#: truth (docs/method.md "Labels"): 3 Hz on the position beat 2 and 5 Hz and every cutoff on the velocity.
 SMOOTHING_CUTOFF_HZ = 3.0
 IDENTIFICATION_CUTOFF_HZ = 5.0  # identify_thrust_lag needs the band where the lag shows
 
@@ -48,7 +48,9 @@ class FlightSeries:
     measured; ``thrust_prev_n`` (N,): the thrust commanded at the sample before (the control that
     acted over the period ending at this sample, N); ``f_hat_mps2`` (N, 3): the estimator's f̂
     (NaN where there was none); ``pathway`` (N,) of str or None; ``mass_kg``: the vehicle's mass the
-    thrust in newtons is for (a recording's, or the controller's nominal model), kg.
+    thrust in newtons is for (a recording's, or the controller's nominal model), kg; ``ref_pos_enu_m``,
+    ``ref_vel_enu_mps`` (N, 3): the reference the controller tracked at each sample (None, or NaN rows,
+    where it is not known: an imported log).
     """
 
     t_s: np.ndarray
@@ -60,6 +62,8 @@ class FlightSeries:
     f_hat_mps2: np.ndarray
     pathway: np.ndarray | None = None
     mass_kg: float = VehicleModel().mass_kg
+    ref_pos_enu_m: np.ndarray | None = None
+    ref_vel_enu_mps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -75,15 +79,34 @@ class FlightSeries:
         """(R e₃)_z = cos φ cos θ (N,)."""
         return np.cos(self.roll_rad) * np.cos(self.pitch_rad)
 
-    def signals(self, lag: ThrustLag) -> FeatureSignals:
+    def signals(self, lag: ThrustLag, regressors: str = "state") -> FeatureSignals:
+        """What the features are built from; with ``regressors="reference"`` the tracked axis' position and
+        velocity are the reference's where it is known (:func:`features`)."""
         applied = applied_thrust_series(self.thrust_prev_n, lag, self.dt_s)
-        return FeatureSignals(self.pos_enu_m, self.vel_enu_mps, self.roll_rad, self.pitch_rad,
-                              self.thrust_prev_n, applied)
+        pos, vel = self.pos_enu_m, self.vel_enu_mps
+        if regressors == "reference" and self.ref_pos_enu_m is not None and self.ref_vel_enu_mps is not None:
+            known = np.all(np.isfinite(self.ref_pos_enu_m), axis=1) & np.all(np.isfinite(self.ref_vel_enu_mps), axis=1)
+            pos, vel = np.array(pos, dtype=float), np.array(vel, dtype=float)
+            pos[known, 2], vel[known, 2] = self.ref_pos_enu_m[known, 2], self.ref_vel_enu_mps[known, 2]
+        return FeatureSignals(pos, vel, self.roll_rad, self.pitch_rad, self.thrust_prev_n, applied)
 
 
-def features(series: FlightSeries, fset: FeatureSet, lag: ThrustLag = ThrustLag()) -> np.ndarray:
-    """z (N, fset.size) for every sample: the inputs the estimator builds in flight."""
-    return fset.build(series.signals(lag))
+#: What a network's tracked-state inputs are trained on. ``state``: the measured position and velocity, as it
+#: flies them; but in closed loop the state answers the disturbance (a push up raises the vehicle until the
+#: observer catches it), so a regression on it finds the loop: positive slopes, extra feedback gain, not
+#: aerodynamics (issue 32). ``reference``: the reference's (z*, ż*), which the disturbance does not move: an
+#: instrument for the state (p_z = z* − e with e the loop's answer); the network still flies on the measured
+#: state, a tracking error (cm) away. Where the reference is not known (an imported log) the state is used.
+REGRESSORS = ("state", "reference")
+
+
+def features(series: FlightSeries, fset: FeatureSet, lag: ThrustLag = ThrustLag(), regressors: str = "state"
+             ) -> np.ndarray:
+    """z (N, fset.size) for every sample: the inputs the estimator builds in flight, or (``regressors``
+    ``"reference"``, :data:`REGRESSORS`) the same with the tracked state taken from the reference."""
+    if regressors not in REGRESSORS:
+        raise ValueError(f"regressors must be one of {REGRESSORS}, got {regressors!r}")
+    return fset.build(series.signals(lag, regressors))
 
 
 def zero_phase(x: np.ndarray, dt_s: float, cutoff_hz: float = SMOOTHING_CUTOFF_HZ) -> np.ndarray:
@@ -168,8 +191,10 @@ class Recipe:
     the stability certificate allows for the gains flown (physical units only).
     ``tdr_scalers``: ``init`` keeps the base network's z-scores, ``fit`` refits them on the new
     data (:func:`neso.training.train_lipschitz_mlp`). ``certified_fraction``: the physical bound on the state
-    inputs as a fraction of the largest certified (:func:`neso.certificate.flight_budget`);
-    ``exogenous_fraction``: the other inputs' bound as a multiple of it (:func:`recipe_blocks`).
+    inputs as a fraction of the largest certified to fly well (:func:`neso.certificate.flight_budget`, with the
+    other inputs at ``exogenous_fraction`` of it); ``exogenous_fraction``: the other inputs' bound as a
+    multiple of the state inputs' (:func:`recipe_blocks`). Attitude and thrust inputs are in the loop
+    through ``u_z`` and their rates are large (:mod:`neso.certificate.flight`): a small fraction.
     """
 
     name: str
@@ -180,12 +205,15 @@ class Recipe:
     lipschitz_bound: float | None
     tdr_scalers: str
     certified_fraction: float = 0.9
-    exogenous_fraction: float = 1.0
+    exogenous_fraction: float = 0.05
+    regressors: str = "state"
     description: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         if self.base_label not in LABELS or self.tdr_label not in LABELS:
             raise ValueError(f"labels must be in {LABELS}")
+        if self.regressors not in REGRESSORS:
+            raise ValueError(f"regressors must be one of {REGRESSORS}")
         if self.lipschitz_bound is None and self.bound_units != "physical":
             raise ValueError("a certified bound (lipschitz_bound None) is in physical units")
 
@@ -194,7 +222,8 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
     Recipe("paper", PAPER_FEATURE_SET, "eso", "tdr", "normalised", 1.0, "init", description=
            "the paper as published: [p_z, v_z, T_k-1, roll, pitch], ESO and f_N + Δf̂ labels, L_N = 1 normalised, "
            "TDR keeps the base network's z-scores"),
-    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit", description=
+    Recipe("certified", DEFAULT_FEATURE_SET, "eso", "applied", "physical", None, "fit",
+           description=
            "inputs free of the controller's output, lag-consistent TDR labels, trained to the largest bound the "
            "certificate allows for the gains flown, TDR z-scores refitted"),
 )}
@@ -209,20 +238,25 @@ def recipe_of(metadata: dict) -> Recipe:
     return RECIPES["paper"] if metadata.get("feature_set", PAPER_FEATURE_SET) == PAPER_FEATURE_SET else RECIPES[DEFAULT_RECIPE]
 
 
-def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float) -> float:
-    """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown."""
+def recipe_bound(recipe: Recipe, kp: float, kd: float, omega_o: float, mass_kg: float = VehicleModel().mass_kg) -> float:
+    """The bound a recipe trains to, in its units, for the z gains (1/s², 1/s) and ω_o (rad/s) flown on a vehicle
+    of ``mass_kg``."""
     if recipe.lipschitz_bound is not None:
         return recipe.lipschitz_bound
-    from neso.certificate import flight_budget
+    from neso.certificate import LoopPlant, flight_budget
+    from neso.control import ControlConfig
 
-    return recipe.certified_fraction * flight_budget(kp, kd, omega_o)
+    plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=float(mass_kg))))
+    roles = tuple(r for r, cols in feature_set(recipe.feature_set).role_columns.items() if cols and r != "state")
+    return recipe.certified_fraction * flight_budget(kp, kd, omega_o, plant=plant, exogenous_roles=roles,
+                                                     exogenous_fraction=recipe.exogenous_fraction)
 
 
 def recipe_blocks(recipe: Recipe, fset: FeatureSet, bound: float):
     """``(blocks, bounds)`` for :func:`neso.training.train_lipschitz_mlp`: for a physical recipe, the state
-    inputs under ``bound`` (the certificate's loop gain) and the exogenous ones under
-    ``recipe.exogenous_fraction × bound`` (they move only the ultimate bound, :mod:`neso.certificate.roles`);
-    ``(None, None)`` otherwise (one bound on everything)."""
+    inputs under ``bound`` and every other input under ``recipe.exogenous_fraction × bound`` (each of them
+    then stays within the slopes :func:`recipe_bound` certified); ``(None, None)`` otherwise (one bound on
+    everything)."""
     state = fset.state_columns
     exo = tuple(i for i in range(fset.size) if i not in state)
     if recipe.bound_units != "physical" or not state or not exo:

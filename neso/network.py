@@ -262,6 +262,14 @@ class LipschitzMLP:
         except FeatureSetError:
             return tuple(range(self.n_inputs))
 
+    def role_columns(self) -> dict[str, tuple[int, ...]]:
+        """Its inputs by role (:attr:`neso.features.FeatureSet.role_columns`); every input ``state`` if its feature
+        set is unknown (the certificate then counts all of them in the loop)."""
+        try:
+            return self.feature_set.role_columns
+        except FeatureSetError:
+            return {"state": tuple(range(self.n_inputs)), "thrust": (), "attitude": (), "speed": ()}
+
     def certified_lipschitz_state(self) -> float:
         """Upper bound on the Lipschitz constant in the state inputs alone, physical units (0 without any):
         what the stability certificate's verdict needs."""
@@ -299,6 +307,27 @@ class LipschitzMLP:
         bs[-1] = bs[-1] * ratio + (self.output_mean - om) / osd
         return LipschitzMLP(tuple(ws), tuple(bs), im, isd, om, osd, self.lipschitz_bound, dict(self.metadata),
                             self.bound_units)
+
+    def within_block_bounds(self, blocks, bounds) -> LipschitzMLP:
+        """A copy whose physical certificate in each block of input columns (``blocks``: tuples of indices) is at
+        most that block's bound (``bounds``, (m/s²) per unit): the first layer's columns of a block over its bound
+        are scaled by ``bound / certificate`` (less a hair for rounding), the others are left as they are. Every
+        trainer's last step, so no network is stored over the bounds it states."""
+        w0 = np.array(self.weights[0])
+        for cols, bound in zip(blocks, bounds):
+            cols = list(cols)
+            cert = self.certified_lipschitz_columns(cols)
+            if cert > bound:
+                w0[:, cols] *= bound / cert * (1.0 - 1e-12)
+        net = LipschitzMLP((w0, *self.weights[1:]), self.biases, self.input_mean, self.input_std, self.output_mean,
+                           self.output_std, self.lipschitz_bound, dict(self.metadata), self.bound_units)
+        for cols, bound in zip(blocks, bounds):
+            if net.certified_lipschitz_columns(list(cols)) > bound:  # rounding of the SVD: shrink a relative 1e-9 more
+                w0[:, list(cols)] *= 1.0 - 1e-9
+                net = LipschitzMLP((w0, *self.weights[1:]), self.biases, self.input_mean, self.input_std,
+                                   self.output_mean, self.output_std, self.lipschitz_bound, dict(self.metadata),
+                                   self.bound_units)
+        return net
 
     def scaled_to_bound(self, bound: float, units: str | None = None, *, all_inputs: bool = False) -> LipschitzMLP:
         """A copy whose certificate in ``units`` (default: its ``bound_units``) is ``<= bound``, stating

@@ -259,8 +259,9 @@ def _train_physical(z, y, bound, *, hidden, epochs, lr, batch_size, val_fraction
     in_mean, in_std = _zscore_stats(z[tr])
     out_mean, out_std = _zscore_stats(y[tr])
     net = layers.export(in_mean, in_std, float(out_mean[0]), float(out_std[0]), bound)
-    if len(blocks) == 1:
-        net = net.scaled_to_bound(bound)  # no-op unless rounding left it a hair over
+    # the kept network may be the start (a linear fit at its bound plus small paths, or a warm start made for a
+    # higher bound): every block is brought within its bound before anything is stored
+    net = net.within_block_bounds(blocks, block_bounds)
     extra = {"split": f"runs of {run} consecutive samples", "trainer": "physical budget, exact parametrisation",
              "start": info["start"], "best_epoch": str(info["best_epoch"]), "epochs_run": str(info["epochs_run"]),
              "linear_fit_slopes": json.dumps([round(float(v), 6) for v in info["linear"].slopes])}

@@ -119,6 +119,7 @@ def flight_series(rec: Recording, vehicle: str | None = None) -> tuple[FlightSer
     sp_seq, sp = _by_seq(rec.channel("setpoint", vehicle), ["thrust_n"])
     est_seq, est = _by_seq(rec.channel("estimate", vehicle), ["f_hat_mps2", "pathway", "warm_ticks"])
     tr_seq, tr = _by_seq(rec.channel("truth", vehicle), ["on_ground"])
+    ref_seq, ref = _by_seq(rec.channel("reference", vehicle), ["pos_enu_m", "vel_enu_mps"])
     thrust_by_seq = dict(zip(sp_seq.tolist(), np.asarray(sp.get("thrust_n", []), dtype=float).tolist()))
     thrust_prev = np.empty(len(seq))
     last = next(iter(thrust_by_seq.values()), 0.0)
@@ -134,6 +135,12 @@ def flight_series(rec: Recording, vehicle: str | None = None) -> tuple[FlightSer
         f_hat[hit] = np.asarray(est["f_hat_mps2"])[pos[hit]]
         pathway[hit] = est["pathway"][pos[hit]]
         warm[hit] = np.asarray(est["warm_ticks"])[pos[hit]]
+    ref_pos, ref_vel = np.full((len(seq), 3), np.nan), np.full((len(seq), 3), np.nan)
+    if len(ref_seq):  # the reference the controller tracked at each sample (none in an imported log)
+        pos = np.searchsorted(ref_seq, seq)
+        hit = (pos < len(ref_seq)) & (ref_seq[np.minimum(pos, len(ref_seq) - 1)] == seq)
+        ref_pos[hit] = np.asarray(ref["pos_enu_m"], dtype=float)[pos[hit]]
+        ref_vel[hit] = np.asarray(ref["vel_enu_mps"], dtype=float)[pos[hit]]
     on_ground = np.zeros(len(seq), dtype=bool)
     if len(tr_seq):
         ground = dict(zip(tr_seq.tolist(), np.asarray(tr["on_ground"]).astype(bool).tolist()))
@@ -145,7 +152,8 @@ def flight_series(rec: Recording, vehicle: str | None = None) -> tuple[FlightSer
                           vel_enu_mps=np.asarray(st["vel_enu_mps"], dtype=float),
                           roll_rad=np.asarray(st["roll_rad"], dtype=float),
                           pitch_rad=np.asarray(st["pitch_rad"], dtype=float), thrust_prev_n=thrust_prev,
-                          f_hat_mps2=f_hat, pathway=pathway, mass_kg=recorded_mass(rec)[0])
+                          f_hat_mps2=f_hat, pathway=pathway, mass_kg=recorded_mass(rec)[0], ref_pos_enu_m=ref_pos,
+                          ref_vel_enu_mps=ref_vel)
     return series, seq, {"warm_ticks": warm, "on_ground": on_ground}
 
 
@@ -162,12 +170,15 @@ def _sub(series: FlightSeries, part: slice) -> FlightSeries:
     return dataclasses.replace(
         series, t_s=series.t_s[part], pos_enu_m=series.pos_enu_m[part], vel_enu_mps=series.vel_enu_mps[part],
         roll_rad=series.roll_rad[part], pitch_rad=series.pitch_rad[part], thrust_prev_n=series.thrust_prev_n[part],
-        f_hat_mps2=series.f_hat_mps2[part], pathway=None if series.pathway is None else series.pathway[part])
+        f_hat_mps2=series.f_hat_mps2[part], pathway=None if series.pathway is None else series.pathway[part],
+        ref_pos_enu_m=None if series.ref_pos_enu_m is None else series.ref_pos_enu_m[part],
+        ref_vel_enu_mps=None if series.ref_vel_enu_mps is None else series.ref_vel_enu_mps[part])
 
 
 def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip_s: float = 0.5,
-           vehicle: str | None = None) -> Selection:
-    """The training pairs of one recording (see the module docstring for the rules)."""
+           vehicle: str | None = None, regressors: str = "state") -> Selection:
+    """The training pairs of one recording (see the module docstring for the rules); ``regressors``: what the
+    tracked-state inputs are taken from (:data:`neso.learning.REGRESSORS`)."""
     if label not in LABELS:
         raise ValueError(f"label must be one of {LABELS}, got {label!r}")
     try:
@@ -180,7 +191,7 @@ def select(rec: Recording, label: str, fset: FeatureSet, lag: ThrustLag, *, skip
     zs, ys, masks = [], [], []
     for part in _stretches(seq):  # labels are smoothed along a stretch, never across a gap
         sub = _sub(series, part)
-        zs.append(features(sub, fset, lag))
+        zs.append(features(sub, fset, lag, regressors))
         ys.append(labels(sub, label, lag))
         masks.append(sub.t_s >= sub.t_s[0] + skip_s)
     z, y, settled = np.concatenate(zs), np.concatenate(ys), np.concatenate(masks)
@@ -215,7 +226,7 @@ def _offline_teacher(rec: Recording, series: FlightSeries, seq: np.ndarray, extr
 
 
 def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATURE_SET,
-                      lag: ThrustLag | None = None, skip_s: float = 0.5) -> TrainingSet:
+                      lag: ThrustLag | None = None, skip_s: float = 0.5, regressors: str = "state") -> TrainingSet:
     """Training pairs from one or more ``.rrd`` files (a path or a list of them) of one vehicle.
     ``lag``: the applied-thrust model (None: identified on these recordings; the closed-loop prediction
     flies it whatever the label; when there is no airborne stretch to identify it on, a label and inputs
@@ -244,7 +255,7 @@ def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATU
             lag, lag_source = ThrustLag(), f"none ({exc})"
     zs, ys = [], []
     for path, rec in zip(paths, recs):
-        sel = select(rec, label, fset, lag, skip_s=skip_s)
+        sel = select(rec, label, fset, lag, skip_s=skip_s, regressors=regressors)
         if len(sel.y_mps2) == 0:
             reasons = ", ".join(f"{n} {why}" for why, n in sel.dropped.items() if n) or "no estimates recorded"
             raise RecordingError(f"{path}: no usable {label!r} samples out of {sel.estimates} samples ({reasons})")

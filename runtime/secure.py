@@ -76,7 +76,8 @@ class Credentials:
         if missing:
             raise SecureSetupError(f"no credentials for {self.identity!r} in {self.directory} (missing "
                                    f"{', '.join(os.path.basename(p) for p in missing)}): run `neso secure init` "
-                                   f"there, or copy them from the machine that did (README: a second machine)")
+                                   f"there, or copy them from the machine that did "
+                                   f"(docs/secure-bus.md: a second machine)")
         return self
 
     def tls(self) -> dict:

@@ -1,27 +1,30 @@
-"""The role certificate's verified frontier per gains, kept between processes: a started or restarted estimator
-adopts the one found before — after verifying it in numpy exactly as the solver's own results are
-(:func:`neso.certificate.roles.adopt_frontier`) — instead of importing cvxpy and solving SDPs again (measured:
-~1.5 s of its start, most of it cvxpy's import). A missing, stale, unreadable or tampered entry is only ever
-a slower start: it is solved again and written back. One JSON file, ``$XDG_CACHE_HOME/neso/role-certificates.json``
-(default ``~/.cache``), replaced atomically."""
+"""Role certificates kept between processes: a started or restarted estimator adopts the certificates found before
+for its network and gains — after verifying every one in numpy exactly as the solver's own results are
+(:func:`neso.certificate.roles.adopt_certificate`) — instead of importing cvxpy and solving SDPs again (measured:
+~1.5 s of its start, most of it cvxpy's import). A missing, stale, unreadable or tampered entry is only ever a slower
+start: it is solved again and written back. One JSON file, ``$XDG_CACHE_HOME/neso/role-certificates.json`` (default
+``~/.cache``), replaced atomically."""
 from __future__ import annotations
 
 import json
 import os
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 
-from neso.certificate.roles import adopt_frontier, frontier_certificate
+from neso.certificate import POLICY, CertificatePolicy, LoopPlant, NetworkSlopes, ReferenceBounds
+from neso.certificate.flight import role_inputs
+from neso.certificate.roles import RoleInputs, adopt_certificate, certificate_data, certify_roles
 
-VERSION = 1
+VERSION = 2
 
 
 def cache_path() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "neso" / "role-certificates.json"
 
 
-def _key(kp: float, kd: float, omega_o: float) -> str:
-    return f"{float(kp)!r},{float(kd)!r},{float(omega_o)!r}"
+def _key(inputs: RoleInputs) -> str:
+    return json.dumps({k: float(v) for k, v in asdict(inputs).items()}, sort_keys=True)
 
 
 def _read(path: Path) -> dict:
@@ -29,26 +32,40 @@ def _read(path: Path) -> dict:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
-    return data.get("frontiers", {}) if isinstance(data, dict) and data.get("version") == VERSION else {}
+    return data.get("certificates", {}) if isinstance(data, dict) and data.get("version") == VERSION else {}
 
 
-def warm(kp: float, kd: float, omega_o: float, path: Path | None = None) -> str:
-    """Make the gains' frontier known to this process: adopted from the cache if it verifies, else solved and
-    written to it. Returns what happened ("adopted", "solved", or "solved, not cached: <why>")."""
+def warm(questions: list[RoleInputs], path: Path | None = None) -> str:
+    """Make the role certificates for ``questions`` known to this process: adopted from the cache where they verify,
+    else solved and written to it. Returns what happened ("adopted", "solved", or "solved, not cached: <why>")."""
     path = path or cache_path()
-    entry = _read(path).get(_key(kp, kd, omega_o))
-    if isinstance(entry, dict) and adopt_frontier(kp, kd, omega_o, entry.get("lmax"), entry.get("p"), entry.get("tau")):
+    known = _read(path)
+    solved = {}
+    for inputs in questions:
+        entry = known.get(_key(inputs))
+        if isinstance(entry, dict) and adopt_certificate(inputs, entry):
+            continue
+        data = certificate_data(inputs, certify_roles(inputs))
+        if data is not None:
+            solved[_key(inputs)] = data
+    if not solved:
         return "adopted"
-    lmax, p, tau = frontier_certificate(kp, kd, omega_o)
-    if p is None:
-        return "solved"
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        frontiers = _read(path)
-        frontiers[_key(kp, kd, omega_o)] = {"lmax": lmax, "p": p.tolist(), "tau": tau}
+        known = _read(path)
+        known.update(solved)
         with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=".role-certificates-", delete=False) as f:
-            json.dump({"version": VERSION, "frontiers": frontiers}, f)
+            json.dump({"version": VERSION, "certificates": known}, f)
         os.replace(f.name, path)
     except OSError as exc:
         return f"solved, not cached: {exc}"
     return "solved"
+
+
+def warm_flight(slopes: NetworkSlopes, kp: float, kd: float, omega_o: float, plant: LoopPlant,
+                policy: CertificatePolicy = POLICY, path: Path | None = None) -> str:
+    """:func:`warm` for what :func:`neso.certificate.flight_certificate` asks of a network with ``slopes`` and of
+    PD+ESO (no network) at these gains on ``plant``."""
+    envelope = ReferenceBounds.envelope(policy)
+    return warm([role_inputs(slopes, kp, kd, omega_o, plant, envelope, policy),
+                 role_inputs(NetworkSlopes(0.0), kp, kd, omega_o, plant, envelope, policy)], path)

@@ -34,7 +34,9 @@ def run(args, bus) -> int:
     from runtime.launcher import EXIT_CONFIG
     from runtime.node import Node, run_node
     from runtime.params import ParamSet
-    from services.certificate_cache import warm as warm_certificate
+    from neso.certificate import LoopPlant, NetworkSlopes
+    from neso.types import VehicleModel
+    from services.certificate_cache import warm_flight
 
     config = config_from_args(args)
     try:
@@ -44,7 +46,9 @@ def run(args, bus) -> int:
               "--network FILE, or '' for none)", file=sys.stderr, flush=True)
         return EXIT_CONFIG
     default_gains = (ControlConfig().kp[2], ControlConfig().kd[2])
-    warm_certificate(*default_gains, config.omega_o_rps)  # before the network's verdict: no SDP when known before
+    if loaded is not None:  # before the network's verdict: no SDP when known before
+        warm_flight(NetworkSlopes.of(loaded), *default_gains, config.omega_o_rps,
+                    LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=config.mass_kg))))
     network, startup_event = startup_network(config, loaded, default_gains)
     choice = NetworkChoice(network, source if network is not None else "none", config.network_dir)
     core = EstimatorCore(config, network, choice, vehicle=args.vehicle, clock=time.monotonic)
@@ -84,9 +88,11 @@ def run(args, bus) -> int:
         flush_events()
 
     def on_controller_params(values: dict) -> None:
-        kp, kd = values.get("kp_z"), values.get("kd_z")
-        if isinstance(kp, (int, float)) and isinstance(kd, (int, float)) and (kp, kd) != core.gains_z:
-            note = core.set_gains(kp, kd)
+        kp, kd, mass = values.get("kp_z"), values.get("kd_z"), values.get("mass_kg")
+        mass = float(mass) if isinstance(mass, (int, float)) and mass > 0 else core.plant.mass_kg
+        if isinstance(kp, (int, float)) and isinstance(kd, (int, float)) and \
+                ((kp, kd) != core.gains_z or mass != core.plant.mass_kg):
+            note = core.set_gains(kp, kd, mass)
             if note:
                 node.event("warning", note)
 

@@ -81,24 +81,41 @@ class BusWatch:
 class CertificateCheck:
     """The certificate of what the estimator flies, recomputed here through its public API
     (:func:`neso.certificate.flight_certificate`, the function the estimator uses) from the network report's
-    L_N, gains and ω_o; the role certificate's frontier adopted from the cross-process cache when it verifies
-    (:mod:`services.certificate_cache`), else solved once per gains (seconds: off the flight loop's threads)."""
+    slopes, gains, ω_o and vehicle mass, on the controller's model of the loop (:class:`neso.certificate.LoopPlant`
+    of :class:`neso.control.ControlConfig` at that mass, as the estimator builds it); the SDPs adopted from the
+    cross-process cache when they verify (:func:`services.certificate_cache.warm_flight`), else solved once per
+    report (seconds: on the preflight thread, off the flight loop's). A report this code cannot read (another
+    version of the certificate) is judged by the estimator's own verdict, and the item says so."""
 
     def __init__(self) -> None:
-        self._done: dict[tuple[float, float, float, float], dict] = {}
+        self._done: dict[str, dict] = {}
 
     def verdict(self, network) -> dict | None:
         if network is None or not network.certificate:
             return None
         c = network.certificate
-        key = (float(c["lipschitz_phys"]), float(c["kp"]), float(c["kd"]), float(c["omega_o"]))
+        key = repr(sorted((k, repr(v)) for k, v in c.items() if k in ("slopes", "kp", "kd", "omega_o",
+                                                                        "vehicle_mass_kg")))
         if key not in self._done:
-            from neso.certificate import flight_certificate
-            from services.certificate_cache import warm
-
-            warm(key[1], key[2], key[3])
-            self._done[key] = flight_certificate(key[0], kp=key[1], kd=key[2], omega_o=key[3]).to_dict()
+            try:
+                self._done[key] = self._recompute(c)
+            except (KeyError, TypeError, ValueError) as exc:
+                self._done[key] = dict(c, text=f"{c.get('text', '')} (the estimator's verdict: its report could not "
+                                                f"be recomputed here: {type(exc).__name__}: {exc})")
         return self._done[key]
+
+    @staticmethod
+    def _recompute(c: dict) -> dict:
+        from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
+        from neso.control import ControlConfig
+        from neso.types import VehicleModel
+        from services.certificate_cache import warm_flight
+
+        slopes = NetworkSlopes.from_dict(c["slopes"])
+        kp, kd, omega_o = float(c["kp"]), float(c["kd"]), float(c["omega_o"])
+        plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=float(c["vehicle_mass_kg"]))))
+        warm_flight(slopes, kp, kd, omega_o, plant)
+        return flight_certificate(slopes, kp=kp, kd=kd, omega_o=omega_o, plant=plant).to_dict()
 
 
 class TimeSync:

@@ -178,13 +178,21 @@ def flown_gains(certificate: dict | None, config: TrainerConfig) -> tuple[float,
     return config.kp, config.kd, config.omega_o_rps
 
 
+def flown_mass(certificate: dict | None, recorded_kg: float) -> float:
+    """The vehicle mass (kg) the estimator reports flying, else the recordings' own."""
+    mass = (certificate or {}).get("vehicle_mass_kg")
+    return float(mass) if isinstance(mass, (int, float)) and mass > 0 else float(recorded_kg)
+
+
 def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None, offer_fn=None,
               certificate: dict | None = None) -> JobResult:
     """Dataset → training → certificate → closed-loop prediction → registry → offer
     (``offer_fn(path, predicted) -> (ok, message)``). ``active``/``certificate``: the estimator's
     latest ``NetworkMsg.active`` / ``.certificate``."""
-    from neso.certificate import flight_certificate
+    from flight.estimator import network_certificate
+    from neso.certificate import LoopPlant
     from neso.features import feature_set
+    from neso.types import VehicleModel
     from neso.learning import DEFAULT_RECIPE, RECIPES, recipe_blocks, recipe_bound, recipe_of
     from neso.training import train_lipschitz_mlp
     from recordings.dataset import load_training_set
@@ -207,27 +215,30 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
         recipe = RECIPES[DEFAULT_RECIPE]
         label, fset = job.label or recipe.base_label, recipe.feature_set
     lag = init.thrust_lag if init is not None and init.feature_set.uses_applied_thrust else None
-    ts = load_training_set(list(job.recordings), label, feature_set_key=fset, lag=lag)
+    ts = load_training_set(list(job.recordings), label, feature_set_key=fset, lag=lag, regressors=recipe.regressors)
     if ts.vehicle and ts.vehicle != vehicle:
         raise ValueError(f"the recordings are of vehicle {ts.vehicle!r}, this trainer serves {vehicle!r}")
     t1 = time.perf_counter()
     result.timings_s["dataset"] = t1 - t0
+    mass_kg = flown_mass(certificate, ts.mass_kg)
     if job.lipschitz_bound is not None:
         bound = job.lipschitz_bound
     elif recipe.bound_units == "normalised" and init is not None:
         bound = init.lipschitz_bound
     else:
-        bound = recipe_bound(recipe, kp, kd, omega_o)
+        bound = recipe_bound(recipe, kp, kd, omega_o, mass_kg)
     blocks, block_bounds = recipe_blocks(recipe, feature_set(ts.feature_set), bound)
     res = train_lipschitz_mlp(
         ts.z, ts.y_mps2, lipschitz_bound=bound, bound_units=recipe.bound_units, epochs=job.epochs, seed=job.seed,
         init=init, scalers=recipe.tdr_scalers if init is not None else "fit", blocks=blocks, block_bounds=block_bounds,
         metadata={"vehicle": vehicle, "parent": parent, "feature_set": ts.feature_set, "recipe": recipe.name,
                   "label": label, "thrust_lag_s": repr(ts.thrust_lag.time_constant_s),
-                  "thrust_delay_s": repr(ts.thrust_lag.delay_s)})
+                  "thrust_delay_s": repr(ts.thrust_lag.delay_s), "mass_kg": repr(float(ts.mass_kg)),
+                  "regressors": recipe.regressors})
     t2 = time.perf_counter()
     result.timings_s["train"] = t2 - t1
-    cert = flight_certificate(res.network.certified_lipschitz_state(), kp=kp, kd=kd, omega_o=omega_o).to_dict()
+    plant = LoopPlant.of(ControlConfig(vehicle=VehicleModel(mass_kg=mass_kg)))
+    cert = network_certificate(res.network, kp, kd, omega_o, plant).to_dict()
     t3 = time.perf_counter()
     result.timings_s["certify"] = t3 - t2
     if init is not None:

@@ -18,7 +18,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from neso.certificate import flight_budget
+from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
 from neso.control import ControlConfig
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
@@ -68,7 +68,8 @@ class PaperConfig:
 
     def base_bound(self, recipe: Recipe) -> float:
         """The recipe's bound in its units (the certified one for these gains when it asks for it)."""
-        return recipe_bound(recipe, self.control.kp[2], self.control.kd[2], self.omega_o_rps)
+        return recipe_bound(recipe, self.control.kp[2], self.control.kd[2], self.omega_o_rps,
+                            self.control.vehicle.mass_kg)
 
 
 @dataclass(frozen=True)
@@ -124,15 +125,16 @@ def _late(series: FlightSeries, skip_s: float) -> np.ndarray:
 
 
 def training_pairs(logs: list[FlightLog], recipe_label: str, fset_key: str, lag: ThrustLag, *,
-                   skip_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """(z (N, n), y (N,)) of flights: the feature set's inputs and the label ``recipe_label``
-    (:func:`neso.learning.labels`), the first ``skip_s`` of each flight left out (observer warm-up)."""
+                   skip_s: float = 0.5, regressors: str = "state") -> tuple[np.ndarray, np.ndarray]:
+    """(z (N, n), y (N,)) of flights: the feature set's inputs (the tracked state from ``regressors``,
+    :data:`neso.learning.REGRESSORS`) and the label ``recipe_label`` (:func:`neso.learning.labels`), the first
+    ``skip_s`` of each flight left out (observer warm-up)."""
     fset = feature_set(fset_key)
     zs, ys = [], []
     for log in logs:
         series = log.series()
         keep = _late(series, skip_s)
-        zs.append(features(series, fset, lag)[keep])
+        zs.append(features(series, fset, lag, regressors)[keep])
         ys.append(labels(series, recipe_label, lag)[keep])
     return np.concatenate(zs), np.concatenate(ys)
 
@@ -177,7 +179,8 @@ def train(z: np.ndarray, y: np.ndarray, *, bound: float, units: str, config: Pap
     return train_lipschitz_mlp(
         z, y, lipschitz_bound=bound, bound_units=units, epochs=config.epochs, seed=config.seed, init=init,
         scalers=scalers, blocks=blocks, block_bounds=block_bounds, metadata={"id": name, "training_data": source, "feature_set": fset_key, "recipe": recipe_name,
-                                   "thrust_lag_s": repr(lag.time_constant_s), "thrust_delay_s": repr(lag.delay_s)},
+                                   "thrust_lag_s": repr(lag.time_constant_s), "thrust_delay_s": repr(lag.delay_s),
+                                   "mass_kg": repr(float(config.control.vehicle.mass_kg))},
     )
 
 
@@ -289,7 +292,7 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
     details: dict = {"recipe": recipe.name, "feature_set": recipe.feature_set, "bound_units": recipe.bound_units,
                      "base_bound": bound, "networks": {}, "settling_time_s": {}}
     fs = recipe.feature_set
-    z_t, y_t = training_pairs(teacher_logs, recipe.base_label, fs, lag)
+    z_t, y_t = training_pairs(teacher_logs, recipe.base_label, fs, lag, regressors=recipe.regressors)
     z_a, y_a = acceleration_dataset(teacher_logs, fs, lag, config.control.dt_s)
     flights.log(f"  training on {len(y_t)} samples: bounds {[round(f * bound, 4) for f in ABLATION_FACTORS]} "
                 f"({recipe.bound_units}), acceleration (PD+NN)")
@@ -342,7 +345,8 @@ def _run_recipe(recipe: Recipe, flights: _Flights, teacher_logs: list[FlightLog]
 def tdr_network(tdr_log: FlightLog, recipe: Recipe, config: PaperConfig, base: dict, lag: ThrustLag, tdr_traj):
     """Total Disturbance Retraining: the recipe's TDR labels of a neural_eso lemniscate flight ``tdr_log``
     (``tdr_traj``, its ramp left out), fine-tuned from ``base["base"]``; the training result."""
-    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, recipe.feature_set, lag, skip_s=tdr_traj.cycle_start_s)
+    z_r, y_r = training_pairs([tdr_log], recipe.tdr_label, recipe.feature_set, lag, skip_s=tdr_traj.cycle_start_s,
+                              regressors=recipe.regressors)
     return train(z_r, y_r, bound=config.base_bound(recipe), units=recipe.bound_units, config=config,
                  name=f"{recipe.name}-tdr" if recipe.bound_units == "normalised" else "tdr",
                  fset_key=recipe.feature_set, lag=lag, recipe_name=recipe.name, init=base["base"],
@@ -405,18 +409,20 @@ def _bound_key(value: float) -> str:
 
 def _network_details(result, config: PaperConfig) -> dict:
     net = result.network
-    cert = flight_budget(config.control.kp[2], config.control.kd[2], config.omega_o_rps)
+    cert = flight_certificate(NetworkSlopes.of(net), kp=config.control.kp[2], kd=config.control.kd[2],
+                              omega_o=config.omega_o_rps, plant=LoopPlant.of(config.control))
     return {
         "bound": net.lipschitz_bound,
         "bound_units": net.bound_units,
         "certified_lipschitz_normalised": net.certified_lipschitz_normalised(),
         "certified_lipschitz_physical": net.certified_lipschitz_physical(),
         "certified_lipschitz_state": net.certified_lipschitz_state(),
-        "certificate_holds": net.certified_lipschitz_state() < cert,
+        "certificate_holds": cert.holds,
+        "certificate": cert.to_dict(),
         "val_loss_vs_mean": result.val_loss_vs_mean,
         "slopes": result.slopes,
         "start": net.metadata.get("start", ""),
-        "largest_certified_physical": cert,
+        "largest_certified_physical": cert.max_certified,
         "feature_set": net.feature_set.key,
         "val_loss": result.val_loss,
         "n_train": result.n_train,

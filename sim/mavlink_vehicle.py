@@ -19,8 +19,8 @@ control (PX4's land detector), and disarms 2 s of vehicle time later (PX4's COM_
 COM_OBL_RC_ACT (``sim/px4/neso_quad.params``, read here: 0.3 s, Hold; the last line of defence behind the gateway's
 own failsafe) and, as PX4 does, returns to offboard when setpoints stream again. Disarmed: motors off. It says
 what PX4 v1.16 says in STATUSTEXT for the same events (arming, disarming, land, landing detected, the failsafe);
-it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, and a request for it only once it has one, as PX4 does. Where it still differs from PX4 SITL:
-README, "Real PX4 in the loop".
+it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, and a request for it only once it has one, as PX4 does. Where
+it still differs from PX4 SITL: docs/px4.md, "Real PX4 in the loop".
 
 **Pre-flight checks** (PX4's EKF2 settling on external vision, then commander's arming checks): it is ready
 only once it has received external-vision ODOMETRY (quality at least EKF2_EV_QMIN 1, as the gateway forwards the

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from neso.types import VEL_CUTOFF_HZ
+
 _BUFFER_SIZE = 6 * 1024
 
 
@@ -34,7 +36,7 @@ class MocapConfig:
     latency_s: float = 0.010
     pos_noise_std_m: float = 0.001
     att_noise_std_rad: float = math.radians(0.1)
-    vel_cutoff_hz: float = 15.0
+    vel_cutoff_hz: float = VEL_CUTOFF_HZ
     noise: bool = True
 
 

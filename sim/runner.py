@@ -42,6 +42,7 @@ class FlightLog:
     f_true: np.ndarray  # (N, 3) the disturbance the nominal model does not explain (truth)
     vel_true_mps: np.ndarray  # (N, 3)
     thrust_applied_true_n: np.ndarray  # (N,) the thrust the rotors are driven to after delay and lag (nominal N)
+    vel_ref_mps: np.ndarray | None = None  # (N, 3) the reference's velocity (None: not recorded)
     diverged: bool = False
     reason: str = ""
     extra: dict = field(default_factory=dict)
@@ -66,7 +67,9 @@ class FlightLog:
         return FlightSeries(t_s=self.t_s[keep], pos_enu_m=self.pos_meas_m[keep], vel_enu_mps=self.vel_meas_mps[keep],
                             roll_rad=self.att_meas_rad[keep, 0], pitch_rad=self.att_meas_rad[keep, 1],
                             thrust_prev_n=self.thrust_prev_n[keep], f_hat_mps2=self.f_hat[keep],
-                            pathway=None if pathway is None else np.full(int(keep.sum()), pathway, dtype=object))
+                            pathway=None if pathway is None else np.full(int(keep.sum()), pathway, dtype=object),
+                            ref_pos_enu_m=self.pos_ref_m[keep],
+                            ref_vel_enu_mps=None if self.vel_ref_mps is None else self.vel_ref_mps[keep])
 
 
 def fly(
@@ -96,7 +99,8 @@ def fly(
     out = controller.hover_output(ref0.yaw_rad)
     cols = {name: np.full((n, w), np.nan) for name, w in (
         ("pos_true_m", 3), ("pos_meas_m", 3), ("vel_meas_mps", 3), ("att_meas_rad", 3), ("pos_ref_m", 3),
-        ("f_hat", 3), ("f_n", 3), ("delta_f_hat", 3), ("acc_cmd_mps2", 3), ("f_true", 3), ("vel_true_mps", 3))}
+        ("f_hat", 3), ("f_n", 3), ("delta_f_hat", 3), ("acc_cmd_mps2", 3), ("f_true", 3), ("vel_true_mps", 3),
+        ("vel_ref_mps", 3))}
     scalars = {name: np.full(n, np.nan) for name in ("thrust_n", "thrust_prev_n", "thrust_applied_true_n")}
     zs = []
     t = np.full(n, np.nan)
@@ -117,7 +121,7 @@ def fly(
         out = controller.step(meas, ref, est.f_hat)
         row = (truth.pos_enu_m, meas.pos_enu_m, meas.vel_enu_mps, (meas.roll_rad, meas.pitch_rad, meas.yaw_rad),
                ref.pos_enu_m, est.f_hat, est.f_n, est.delta_f_hat, out.applied.acc_cmd_enu_mps2,
-               truth.disturbance_acc_enu_mps2, truth.vel_enu_mps)
+               truth.disturbance_acc_enu_mps2, truth.vel_enu_mps, ref.vel_enu_mps)
         for name, value in zip(cols, row):
             cols[name][k] = value
         zs.append(est.z)

@@ -38,7 +38,7 @@ def nominal_landing() -> SimConfig:
 
 def nominal_landing_noiseless() -> SimConfig:
     """Experiment 1 with noise-free motion capture (its latency and velocity filter stay): what is left is
-    the method's own behaviour (the paper's input shows a limit cycle here, README)."""
+    the method's own behaviour (the paper's input shows a limit cycle here, docs/method.md)."""
     return replace(nominal_landing(), mocap=NOISELESS_MOCAP, name="nominal_landing_noiseless")
 
 

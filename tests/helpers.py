@@ -55,6 +55,9 @@ def candidate(seed=1, vehicle="uav1", scale=1.0, **meta) -> LipschitzMLP:
     ws = tuple(w + rng.normal(0, 0.02, w.shape) for w in base.weights)
     net = LipschitzMLP(ws, base.biases, base.input_mean, base.input_std, base.output_mean, base.output_std,
                        1e9, dict(base.metadata), base.bound_units)
+    if "blocks" in base.metadata:  # the perturbation must not push its attitude slopes over the base's own bounds
+        blocks, bounds = json.loads(base.metadata["blocks"]), json.loads(base.metadata["block_bounds"])
+        net = net.within_block_bounds(blocks, [b * min(scale, 1.0) for b in bounds])
     net = widened(net, scale * base.lipschitz_bound) if scale > 1 else net.scaled_to_bound(scale * base.lipschitz_bound)
     return with_meta(net, id=f"cand-{seed}", vehicle=vehicle, val_loss=0.05, **meta)
 

@@ -86,8 +86,9 @@ Bounds reported (both in the mixed units of ``E``):
   contains that ball, ``‖E‖ ≤ r·sqrt(λ_max(P̄)/λ_min(P))`` (``P̄`` scaled, ``P`` unscaled Lyapunov matrix).
   Compare simulated ``‖E(t)‖`` against this one.
 """
-from neso.certificate.best import (FlightCertificate, best_certificate, certify, flight_budget, flight_certificate,
-                                   max_certified_lipschitz, max_certified_lipschitz_best)
+from neso.certificate.best import best_certificate, certify, max_certified_lipschitz, max_certified_lipschitz_best
+from neso.certificate.flight import (POLICY, CertificatePolicy, FlightCertificate, LoopPlant, NetworkSlopes,
+                                     ReferenceBounds, exogenous_rates, flight_budget, flight_certificate)
 from neso.certificate.roles import (RoleCertificate, RoleInputs, certify_roles, max_certified_state_lipschitz,
                                     max_certified_state_lipschitz_verified, verify_roles)
 from neso.certificate.core import (METHODS, CertificateInputs, CertificateResult, Method, composite_matrices,
@@ -99,7 +100,8 @@ from neso.certificate.literal import certify_literal
 from neso.certificate.tight import TightParams, certify_tight
 from neso.certificate.verify import verify_certificate
 
-__all__ = ["RoleCertificate", "RoleInputs", "certify_roles", "flight_budget", "max_certified_state_lipschitz",
+__all__ = ["POLICY", "CertificatePolicy", "LoopPlant", "NetworkSlopes", "ReferenceBounds", "exogenous_rates",
+           "RoleCertificate", "RoleInputs", "certify_roles", "flight_budget", "max_certified_state_lipschitz",
            "max_certified_state_lipschitz_verified", "verify_roles", "METHODS", "LMI_STRUCTURE", "LMI_STRUCTURES", "CertificateInputs", "CertificateResult", "FlightCertificate",
            "Method", "TightParams", "best_certificate", "certify", "certify_lmi", "certify_literal", "certify_tight",
            "composite_matrices", "flight_certificate", "lmi_matrix", "lyapunov_residual", "max_certified_lipschitz",

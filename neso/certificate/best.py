@@ -1,16 +1,14 @@
-"""The public choice: dispatch by method, the tightest verified certificate for given gains, and the verdict
-for what flies (:class:`FlightCertificate`).
+"""The public choice of Lemma 1's methods: dispatch by method and the tightest verified certificate for given gains
+(the verdict for what flies is :mod:`neso.certificate.flight`).
 """
 from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
 
 from neso.certificate.core import METHODS, CertificateInputs, CertificateResult, Method
 from neso.certificate.lmi import LMI_STRUCTURE, _lmi_frontier, certify_lmi
 from neso.certificate.literal import certify_literal
-from neso.certificate.roles import max_certified_state_lipschitz_verified
 from neso.certificate.tight import certify_tight
 
 # --------------------------------------------------------------------------------------------- public API
@@ -82,53 +80,3 @@ def best_certificate(inputs: CertificateInputs) -> CertificateResult:
     certificate for these gains). Cached per inputs; the result is shared, do not mutate its arrays."""
     method = _best_method(float(inputs.kp), float(inputs.kd), float(inputs.omega_o), inputs.lambda_c_rule)[0]
     return certify(inputs, method)
-
-
-@dataclass(frozen=True)
-class FlightCertificate:
-    """The verdict for what flies: a network's certified physical Lipschitz constant in its state inputs
-    (:meth:`neso.network.LipschitzMLP.certified_lipschitz_state`) against the largest the role certificate
-    verified for the z gains and observer bandwidth (:func:`flight_budget`; :mod:`neso.certificate.roles`:
-    sharper than Lemma 1, whose LMI gives :func:`max_certified_lipschitz_best`).
-
-    ``lipschitz_phys`` (in the state inputs), ``max_certified``: (m/s²) per unit z. ``kp`` 1/s², ``kd`` 1/s,
-    ``omega_o`` rad/s. ``margin``: ``max_certified − lipschitz_phys`` (> 0 iff it holds).
-    """
-
-    holds: bool
-    lipschitz_phys: float
-    max_certified: float
-    kp: float
-    kd: float
-    omega_o: float
-
-    @property
-    def margin(self) -> float:
-        return self.max_certified - self.lipschitz_phys
-
-    def text(self) -> str:
-        verdict = "holds" if self.holds else "FAILS"
-        rel = self.margin / self.max_certified * 100 if self.max_certified > 0 else float("-inf")
-        return (f"certificate {verdict}: L_N {self.lipschitz_phys:.4g} (m/s²)/unit z physical (state inputs) vs "
-                f"{self.max_certified:.4g} certified for kp {self.kp:g}, kd {self.kd:g}, ω_o {self.omega_o:g} "
-                f"(margin {self.margin:+.4g}, {rel:+.0f} %)")
-
-    def to_dict(self) -> dict:
-        return {"holds": self.holds, "lipschitz_phys": self.lipschitz_phys, "max_certified": self.max_certified,
-                "margin": self.margin, "kp": self.kp, "kd": self.kd, "omega_o": self.omega_o, "text": self.text()}
-
-
-def flight_budget(kp: float, kd: float, omega_o: float) -> float:
-    """The largest physical Lipschitz constant in the state inputs, (m/s²) per unit z, that flies certified
-    with z gains ``kp`` (1/s²), ``kd`` (1/s) and ``omega_o`` (rad/s): the role certificate's verified frontier.
-    What the services check and the trainer spends. Cached per gains."""
-    return max_certified_state_lipschitz_verified(float(kp), float(kd), float(omega_o))
-
-
-def flight_certificate(lipschitz_phys: float, *, kp: float, kd: float, omega_o: float) -> FlightCertificate:
-    """The certificate for a network whose physical Lipschitz constant in its state inputs is ``lipschitz_phys``,
-    flown with these z gains (the planar axes carry no network: ``L_N = 0`` there, which every positive gain
-    certifies)."""
-    lmax = flight_budget(kp, kd, omega_o)
-    return FlightCertificate(bool(lipschitz_phys < lmax), float(lipschitz_phys), float(lmax), float(kp), float(kd),
-                             float(omega_o))

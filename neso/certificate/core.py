@@ -25,6 +25,11 @@ L1_MPS3 = 5.0
 LU_PER_S = 20.0
 REF_VEL_MAX_MPS = 0.5
 REF_ACC_MAX_MPS2 = 1.0
+# The z reference every mission of the runtime stays inside (flight.mission.segment_reference_bounds: a 0.4 m
+# transit over its 1 s minimum is the steepest), what the flight certificate's envelope takes
+MISSION_VEL_MAX_MPS = 0.75
+MISSION_ACC_MAX_MPS2 = 2.4
+MISSION_JERK_MAX_MPS3 = 24.0
 
 
 @dataclass(frozen=True)

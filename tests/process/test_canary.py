@@ -25,7 +25,7 @@ def test_a_bad_network_promoted_by_force_is_rolled_back_by_the_canary(tmp_path):
     proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", endpoint, "--no-dashboard",
                 "--no-trainer", "--recordings-dir", str(rec_dir), "--registry", str(tmp_path / "registry"))
     bad = str(tmp_path / "bad.safetensors")
-    save_network(bad, velocity_feedback_network(-5.0))  # left alone, this one makes the hover diverge (README)
+    save_network(bad, velocity_feedback_network(-5.0))  # left alone, this one makes the hover diverge (docs/tdr.md)
     events: list[EventMsg] = []
     try:
         with session(peer(endpoint)) as s:

@@ -56,7 +56,7 @@ def test_the_loop_never_makes_the_flight_worse(loop):
     """What the operator is promised: a candidate is offered only when the recorded flight flown again says
     it improves, and once promoted the flight is not worse than the canary tolerates (or it was rolled back).
     Whether TDR *improves* the lemniscate is not asserted: in this simulator there is nothing state-dependent
-    left to learn there (README, "What the simulation shows"); the figures are printed."""
+    left to learn there (docs/method.md, "What the simulation shows"); the figures are printed."""
     report, _ = loop
     change = report.predicted["change"]
     assert report.offered == (change < 0), (change, report.trainer_summary)

@@ -6,7 +6,7 @@ One flight (tests in file order): PX4 boots, takes the global origin and fuses t
 vision); offboard and arm; the controller's take-off and hover, landing test, lemniscate and its own landing, after
 which PX4's land detector disarms the vehicle; `neso up` ends by itself after 90 s and leaves one recording, with
 PX4's version, that replays. (PX4's own Land and its offboard-loss failsafe fly in test_px4_failsafe.py and
-test_px4_controller_lost.py, flights of their own.) Figures are printed (pytest -s) for the README."""
+test_px4_controller_lost.py, flights of their own.) Figures are printed (pytest -s) for docs/px4.md."""
 from __future__ import annotations
 
 import subprocess

@@ -1,5 +1,5 @@
 """The training labels against the simulator's truth: the lag-consistent label recovers the disturbance the
-network should learn; the paper's ESO labels lag it and echo the command (README "Labels")."""
+network should learn; the paper's ESO labels lag it and echo the command (docs/method.md "Labels")."""
 from __future__ import annotations
 
 import numpy as np

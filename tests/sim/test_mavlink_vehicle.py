@@ -1,4 +1,4 @@
-"""The MAVLink imitation of PX4 (sim/mavlink_vehicle.py) where it was aligned with PX4 v1.16.0 SITL (README, "Real
+"""The MAVLink imitation of PX4 (sim/mavlink_vehicle.py) where it was aligned with PX4 v1.16.0 SITL (docs/px4.md, "Real
 PX4 in the loop"): no arming before its pre-flight checks pass (external vision received for PX4's settle time;
 PX4's ack, words and readiness signals), not ready again after a long loss of external vision; offboard loss → Hold
 after 0.3 s (COM_OF_LOSS_T, COM_OBL_RC_ACT in this world's airframe) with PX4's "Failsafe activated", back to

@@ -10,4 +10,4 @@ def test_the_certificate_grid_row_of_the_flown_gains():
     cells = dict(zip(GRID_COLUMNS, row))
     assert cells["ω_o"] == "15 ← flown"
     assert float(cells["LMI full"]) > float(cells["tight"]) > float(cells["literal"]) > 0
-    assert abs(float(cells["roles"]) - 7.396) < 0.01, cells
+    assert abs(float(cells["roles"]) - 6.942) < 0.01, cells  # with the velocity filter's 20.6 ms lag (7.396 without)

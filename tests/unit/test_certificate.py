@@ -408,8 +408,8 @@ def _parse(argv):
 @pytest.mark.parametrize(
     "lip,method,expected",
     [(0.01, "literal", 0), (0.05, "literal", 1), (0.05, "tight", 0), (0.05, "both", 0), (5.0, "both", 1),
-     (1.5, "both", 1), (1.5, "lmi", 0), (1.5, "all", 0), (5.0, "lmi", 1), (5.0, "roles", 0), (5.0, "all", 0),
-     (10.0, "roles", 1), (10.0, "all", 1)],
+     (1.5, "both", 1), (1.5, "lmi", 0), (1.5, "all", 0), (5.0, "lmi", 1), (2.0, "roles", 0), (2.0, "all", 0),
+     (5.0, "roles", 1), (5.0, "all", 1), (10.0, "roles", 1), (10.0, "all", 1)],
 )
 def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     certify, args = _parse(["--kp", "10", "--kd", "6", "--omega-o", "20", "--lipschitz", str(lip),
@@ -426,6 +426,11 @@ def test_cli_exit_code_matches_holds(lip, method, expected, capsys):
     if method == "all":  # the verdict is the role certificate's, the one the services fly by
         assert out["method"] == "roles" and "P" not in out["methods"]["lmi"]  # compact: no matrices
         assert out["max_certified_lipschitz"] == out["methods"]["roles"]["max_certified_lipschitz"]
+        # one margin, the one the services act on (the state slope's headroom), and each part beside it
+        assert out["margin"] == pytest.approx(out["max_certified_lipschitz"] - lip)
+        assert out["parts"]["state"] == lip and out["parts"]["loop_gain"] == 0.0
+        if lip == 5.0:  # stable (5 < 8.35 certified) but its |e_z| bound is ×3.5 PD+ESO's: not said to fly well
+            assert out["margin"] > 0 and out["bound_ratio"] > out["max_bound_ratio"] and "fly well" in out["reasons"][0]
 
 
 def test_cli_json_is_compact_and_verbose_adds_the_matrices(capsys):
@@ -433,7 +438,12 @@ def test_cli_json_is_compact_and_verbose_adds_the_matrices(capsys):
     assert certify.run(args) == 0
     text = capsys.readouterr().out
     compact = json.loads(text)
-    assert len(text.splitlines()) < 60 and compact["margin"] == pytest.approx(compact["max_certified_lipschitz"] - 1.0)
+    assert compact["margin"] == pytest.approx(compact["max_certified_lipschitz"] - 1.0)
+
+    def keys(d):
+        return set(d) | set().union(*(keys(v) for v in d.values() if isinstance(v, dict))) if isinstance(d, dict) else set()
+
+    assert not keys(compact) & {"P", "P_e", "P_obs", "coupling_matrix", "role"}  # compact: no matrices
     certify, args = _parse(["--lipschitz", "1.0", "--json", "--verbose"])
     certify.run(args)
     verbose = json.loads(capsys.readouterr().out)
@@ -453,7 +463,7 @@ def test_cli_text_report(capsys):
     out = capsys.readouterr().out
     assert "[literal] FAILS" in out and "[tight] HOLDS" in out and "max certified L_N" in out
     assert "[lmi] HOLDS" in out and "[roles] HOLDS" in out and "verdict (roles): HOLDS" in out
-    assert "re-verified in numpy" in out and "L_N in the state inputs 0.05" in out
+    assert "re-verified in numpy" in out and "state 0.05 (max certified" in out and "eventual |e_z| <=" in out
 
 
 def test_cli_as_subprocess():

@@ -101,16 +101,19 @@ def test_late_messages_of_the_flight_before_a_restart_do_not_hide_the_new_one():
 
 
 def test_the_certificate_shown_is_the_estimators_verdict_not_the_pages():
-    from neso.certificate import flight_certificate
+    from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
+    from neso.control import ControlConfig
 
     v = VehicleModel("uav1")
     assert v.certificate() is None and math.isnan(v.lipschitz()[0])  # nothing reported yet: nothing claimed
-    verdict = flight_certificate(9.2, kp=10.0, kd=6.0, omega_o=OMEGA_O_RPS)  # above the 7.40 the estimator allows
+    verdict = flight_certificate(NetworkSlopes(9.2), kp=10.0, kd=6.0, omega_o=OMEGA_O_RPS,
+                                 plant=LoopPlant.of(ControlConfig()))  # above the 6.94 the estimator allows
     v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a", "lipschitz_norm": 0.5, "lipschitz_phys": 9.2},
                                    candidate={}, previous={}, shadow_error_rms_mps2=-1.0,
                                    certificate=verdict.to_dict()), 0.0)
     cert = v.certificate()
     assert not cert.holds and cert.margin == pytest.approx(verdict.margin) and "FAILS" in cert.text
+    assert "cm" in cert.text  # the verdict states its |e_z| bound in centimetres (none here: it does not hold)
     assert cert.max_lipschitz_phys == pytest.approx(verdict.max_certified) and v.lipschitz() == (9.2, 0.5)
 
 

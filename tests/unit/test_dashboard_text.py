@@ -82,6 +82,23 @@ def test_the_network_panel_shows_the_candidate_and_its_prediction():
     assert "shadow error none yet" in text  # no shadow sample yet: no made-up number
 
 
+def test_the_certificate_row_keeps_its_bound_in_one_cell():
+    """The verdict states |e_z| in cm; its pipes are escaped so the figures table keeps two cells per row."""
+    from neso.certificate import LoopPlant, NetworkSlopes, flight_certificate
+    from neso.control import ControlConfig
+
+    model, v = flown()
+    verdict = flight_certificate(NetworkSlopes(1.0), kp=10.0, kd=6.0, omega_o=15.0, plant=LoopPlant.of(ControlConfig()))
+    report = dict(verdict.to_dict(), segment="hover", segment_bound_cm=17.2, segment_pdeso_bound_cm=13.3)
+    v.ingest("network", NetworkMsg(stamp_s=1.0, seq=1, active={"id": "a"}, candidate={}, previous={},
+                                   shadow_error_rms_mps2=-1.0, certificate=report), 0.0)
+    shown = certificate_shown(v)
+    assert shown.text.startswith("|e_z| ≤ 17.2 cm (PD+ESO 13.3, hover) — certificate holds")
+    row = next(line for line in figures_markdown(v, 100.0, shown).splitlines() if line.startswith("| certificate |"))
+    cells = [c for c in row.replace("\\|", "").split("|") if c.strip()]
+    assert len(cells) == 2 and "\\|e_z\\| ≤ 17.2 cm" in row
+
+
 def test_the_preflight_verdict_is_shown_as_the_gateway_published_it():
     from runtime.schema import PreflightMsg
 

@@ -66,3 +66,49 @@ def test_which_columns_are_the_tracked_state_and_which_sets_carry_thrust():
     assert feature_set("state") is feature_set("state@1")  # a bare name is its newest version
     with pytest.raises(FeatureSetError, match="unknown feature set 'radar@1'.*paper@1"):
         feature_set("radar@1")
+
+
+def test_reference_regressors_take_the_tracked_state_from_the_reference_where_it_is_known():
+    """Issue 32: trained on the measured state, a network's slopes find the loop (the state answers the
+    disturbance); ``regressors="reference"`` builds the tracked state's columns from the reference the
+    controller tracked (an instrument the disturbance does not move), the rest as flown; where the reference is
+    unknown (NaN: an imported log) the measured state stays."""
+    import numpy as np
+
+    from neso.learning import FlightSeries, features
+
+    n = 6
+    rng = np.random.default_rng(0)
+    ref_pos, ref_vel = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    ref_pos[2] = np.nan
+    series = FlightSeries(t_s=np.arange(n) * 0.02, pos_enu_m=rng.normal(size=(n, 3)), vel_enu_mps=rng.normal(size=(n, 3)),
+                          roll_rad=rng.normal(size=n), pitch_rad=rng.normal(size=n), thrust_prev_n=np.full(n, 9.8),
+                          f_hat_mps2=np.zeros((n, 3)), ref_pos_enu_m=ref_pos, ref_vel_enu_mps=ref_vel)
+    fset = feature_set("state@1")
+    state, ref = features(series, fset), features(series, fset, regressors="reference")
+    known = np.arange(n) != 2
+    assert np.array_equal(ref[known, 0], ref_pos[known, 2]) and np.array_equal(ref[known, 1], ref_vel[known, 2])
+    assert np.array_equal(ref[2], state[2]) and np.array_equal(ref[:, 2:], state[:, 2:])  # attitude as flown
+    assert np.array_equal(state[:, 0], series.pos_enu_m[:, 2])
+    with pytest.raises(ValueError, match="regressors"):
+        features(series, fset, regressors="instrument")
+
+
+def test_a_recordings_training_set_reads_the_recorded_reference(tmp_path):
+    import numpy as np
+
+    from recordings.dataset import load_training_set
+    from tests.helpers import flight_messages, write_recording
+
+    import dataclasses
+
+    msgs = [(t, dataclasses.replace(m, pos_enu_m=(m.pos_enu_m[0], m.pos_enu_m[1], m.pos_enu_m[2] + 1.0))
+             if t == "reference" else m) for t, m in flight_messages(300)]  # a reference 1 m off the state
+    path = tmp_path / "f.rrd"
+    write_recording(path, msgs)
+    refs = {m.seq: m for t, m in msgs if t == "reference"}
+    state = load_training_set(path, "eso", feature_set_key="state@1")
+    ref = load_training_set(path, "eso", feature_set_key="state@1", regressors="reference")
+    assert len(ref.y_mps2) == len(state.y_mps2) > 0
+    assert not np.allclose(ref.z[:, :2], state.z[:, :2]) and np.array_equal(ref.z[:, 2:], state.z[:, 2:])
+    assert set(np.round(ref.z[:, 0], 12)) <= {round(m.pos_enu_m[2], 12) for m in refs.values()}

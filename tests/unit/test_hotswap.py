@@ -14,7 +14,8 @@ from neso.netfile import load_network, network_to_bytes, save_network
 from neso.network import LipschitzMLP
 from runtime.schema import ReferenceMsg, StateMsg
 from flight.estimator import EstimatorConfig, EstimatorCore, NetworkChoice, load_flown_network
-from neso.certificate import flight_budget
+from neso.certificate import flight_budget, max_certified_state_lipschitz_verified
+from neso.types import velocity_lag_s
 from tests.helpers import (BASE, REPO, candidate, fixed_clock, measurement, nan_weights, random_network, widened,
                            with_header, with_meta)
 
@@ -156,7 +157,8 @@ def test_an_l_n_change_shows_where_the_network_came_from_and_is_fixed_after_a_pr
     core.apply({"lipschitz_bound": 0.8 * net.lipschitz_bound_physical()})
     assert core.active_info["source"] == "scaled" and core.active_info["path"] == BASE
     core.on_state(state(0), 0.0)  # the change lands at the next sample
-    assert core.estimator.network.certified_lipschitz_physical() <= 0.8 * net.lipschitz_bound_physical() * (1 + 1e-9)
+    # L_N is the network's physical bound on its state inputs (what the certificate's loop gain counts)
+    assert core.estimator.network.certified_lipschitz_state() <= 0.8 * net.lipschitz_bound_physical() * (1 + 1e-9)
     path = str(tmp_path / "cand.safetensors")
     save_network(path, candidate())
     core.accept(core.check_offer(path), path)
@@ -173,7 +175,7 @@ def test_an_l_n_typed_as_shown_finds_the_network_trained_for_it_and_never_flies_
     assert typed != half
     flown, what = choice.network_for(typed)
     assert "base-x0.5.safetensors" in what
-    assert flown.certified_lipschitz_physical() <= typed * (1 + 1e-9)
+    assert flown.certified_lipschitz_state() <= typed * (1 + 1e-9)
     assert "scaled" in choice.network_for(half * 0.99)[1]  # 1 % off is another bound: the loaded one scaled
 
 
@@ -184,10 +186,12 @@ def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overri
     from flight.estimator import estimator_params
 
     net, source = load_flown_network(BASE)
-    # the networks trained here stay well inside their bounds: one trained for an L_N above the certified
-    wide = widened(net, 1.4 * flight_budget(10.0, 6.0, 15.0))
+    # the networks trained here stay well inside their bounds: one trained for an L_N above the stable frontier
+    wide = widened(net, 1.4 * max_certified_state_lipschitz_verified(10.0, 6.0, 15.0, velocity_lag_s()))
+    steep = widened(net, 1.2 * flight_budget(10.0, 6.0, 15.0))  # stable, but not certified to fly well
     save_network(tmp_path / "base.safetensors", net)
     save_network(tmp_path / "base-wide.safetensors", wide)
+    save_network(tmp_path / "base-steep.safetensors", steep)
     core = EstimatorCore(EstimatorConfig(network=BASE), net, NetworkChoice(net, source, str(tmp_path)),
                          clock=fixed_clock)
     assert core.certificate().holds, core.certificate().text()
@@ -196,7 +200,12 @@ def test_an_l_n_whose_certificate_fails_is_refused_with_the_margin_unless_overri
     assert not cert.holds and cert.margin < 0
     params = ParamSet(estimator_params(core.config, net.lipschitz_bound_physical()), check=core.check)
     ok, why, _ = params.request({"lipschitz_bound": double})
-    assert not ok and "certificate FAILS" in why and f"margin {cert.margin:+.4g}" in why and "override" in why
+    assert not ok and "certificate FAILS" in why and f"margin {cert.margin:+.3g}" in why and "override" in why
+    # stable, but its |e_z| bound more than twice PD+ESO's: refused too, with that reason
+    steep_cert = core.certificate_of(core.choice.network_for(steep.lipschitz_bound_physical())[0])
+    assert not steep_cert.holds and steep_cert.margin > 0 and steep_cert.stable
+    ok, why, _ = params.request({"lipschitz_bound": steep.lipschitz_bound_physical()})
+    assert not ok and "fly well" in why and "cm" in why
     assert params.take_pending() == {} and params.take_overrides() == []
     ok, why, _ = params.request({"lipschitz_bound": double, "override": True})
     assert ok and why == ""
@@ -228,10 +237,13 @@ def test_an_uncertified_startup_network_is_not_flown_unless_allowed():
     net, (level, text) = startup_network(EstimatorConfig(network="wide", allow_uncertified=True), wide, gains)
     assert net is wide and level == "warning" and "OUTSIDE" in text
     assert startup_network(EstimatorConfig(), good, gains)[0] is good
-    # the paper's L_N = 1 network: 3.2 (m/s²)/unit z in all its inputs (Lemma 1's LMI allows 1.66) but 2.8 in its
-    # state inputs, which is all the role certificate counts in the loop gain: it flies certified
+    # the paper's L_N = 1 network, the one that limit-cycles at 2.24 Hz without noise (docs/method.md): 2.8 in its
+    # state inputs, inside the state-only frontier, so it flew "certified"; its T_{k-1} and attitude inputs close the
+    # loop through the controller's output (loop gain 0.80), and in that loop nothing is certified
     paper, _ = load_flown_network(str(REPO / "networks" / "paper" / "base-L1.safetensors"))
-    assert paper.certified_lipschitz_physical() > 1.66 and startup_network(EstimatorConfig(), paper, gains)[0] is paper
+    net, (level, text) = startup_network(EstimatorConfig(), paper, gains)
+    assert paper.certified_lipschitz_state() < max_certified_state_lipschitz_verified(*gains, 15.0)
+    assert net is None and level == "error" and "loop gain" in text
 
 
 def test_promoting_an_uncertified_or_predicted_worse_candidate_needs_force(core, tmp_path):
@@ -341,3 +353,33 @@ def test_the_canary_keeps_an_equal_network_whose_window_differs_by_chance():
     verdict = decided[0]
     assert not verdict.tripwire and verdict.threshold > 1.1, verdict.text()
     assert verdict.rollback == (verdict.rms_after_m > verdict.rms_before_m * verdict.threshold)
+
+
+def test_a_network_with_a_thrust_input_made_for_another_mass_is_not_flown_unless_allowed():
+    """Issue 29: the paper's network (its T_{k-1} input in newtons, trained at 1 kg) flown on a 1.5 kg vehicle
+    landed 5.81 cm off (~100× PD+ESO) and the estimator said "certificate holds". The file states its mass; the
+    estimator refuses it at another mass, with the reason, unless allowed; the controller refuses a mass change
+    under which the flown network is not certified (overridably)."""
+    from flight.controller import ControllerConfig, ControllerCore
+    from flight.estimator import startup_network
+    from neso.certificate import LoopPlant, NetworkSlopes
+    from neso.control import ControlConfig
+
+    small = random_network(3, sizes=(5, 12, 8, 1), bound=0.01)
+    thrust_net = type(small)(small.weights, small.biases, small.input_mean, small.input_std, small.output_mean,
+                             small.output_std, small.lipschitz_bound, {"feature_set": "paper@1", "mass_kg": "1.0",
+                                                                       "id": "paper-small"}, "physical")
+    assert startup_network(EstimatorConfig(), thrust_net, (10.0, 6.0))[0] is thrust_net  # made for this vehicle
+    net, (level, text) = startup_network(EstimatorConfig(mass_kg=1.5), thrust_net, (10.0, 6.0))
+    assert net is None and level == "error" and "1 kg vehicle, flown on 1.5 kg" in text
+    net, (level, _) = startup_network(EstimatorConfig(mass_kg=1.5, allow_uncertified=True), thrust_net, (10.0, 6.0))
+    assert net is thrust_net and level == "warning"
+    core = EstimatorCore(EstimatorConfig(), thrust_net, NetworkChoice(thrust_net, "x", None), clock=fixed_clock)
+    assert core.set_gains(10.0, 6.0, 1.5) is not None and not core.certificate().holds  # the controller's broadcast
+    ctl = ControllerCore(ControllerConfig(), clock=fixed_clock)
+    ctl.network_certificate = core.certificate_of(thrust_net).to_dict()
+    values = {"kp_xy": 6.0, "kd_xy": 4.5, "kp_z": 10.0, "kd_z": 6.0, "mass_kg": 1.5}
+    refusal = ctl.check_gains(values)
+    assert refusal is not None and refusal.overridable and "flown on 1.5 kg" in str(refusal)
+    assert ctl.check_gains(dict(values, mass_kg=1.0)) is None
+    assert NetworkSlopes.of(thrust_net).thrust_inputs and LoopPlant.of(ControlConfig()).mass_kg == 1.0

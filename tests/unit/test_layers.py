@@ -1,4 +1,4 @@
-"""The layers of README "Layout": no import runs up, and the step objects never read a clock.
+"""The layers of docs/architecture.md "Layout": no import runs up, and the step objects never read a clock.
 
 Every import counts, also one inside a function (a lazy import is still an arrow)."""
 from __future__ import annotations
@@ -8,7 +8,8 @@ from pathlib import Path
 
 from tests.helpers import REPO
 
-# folder → the project's folders it may import (README "Layout"); cli and bench sit on top of all of them
+# folder → the project's folders it may import (docs/architecture.md "Layout"); cli and bench sit on top of all
+# of them
 MAY_IMPORT = {
     "neso": set(),
     "sim": {"neso"},
@@ -39,7 +40,7 @@ def test_no_import_runs_up_the_layers():
                 top = module.split(".")[0]
                 if top in PACKAGES and top != folder and top not in allowed:
                     arrows_up.append(f"{path.relative_to(REPO)} imports {module}")
-    assert arrows_up == [], "move the shared part down a layer (README 'Layout')"
+    assert arrows_up == [], "move the shared part down a layer (docs/architecture.md 'Layout')"
 
 
 def test_the_step_objects_are_clock_free():

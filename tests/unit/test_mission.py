@@ -55,3 +55,40 @@ def test_an_unknown_command_is_refused_with_the_choices():
     with pytest.raises(ValueError, match="lemniscate"):
         Mission().start("loop", 0.0, np.zeros(3))
     assert "hold" not in COMMANDS  # hold/abort are operations, not missions
+
+
+@pytest.mark.parametrize("start_z", [0.05, 0.3, 0.45, 1.0, 2.0])
+def test_every_segments_z_reference_stays_inside_its_bounds_and_the_certificates_envelope(start_z):
+    """What the stability certificate states its |e_z| bound for: each segment's z speed, acceleration and jerk
+    (flight.mission.segment_reference_bounds, worked out from the quintics) bound the reference the missions fly,
+    sampled, from any start; and every segment stays inside the envelope the verdict's guard uses."""
+    from neso.certificate import POLICY, ReferenceBounds
+
+    from flight.mission import segment_reference_bounds
+
+    bounds = segment_reference_bounds()
+    envelope = ReferenceBounds.envelope(POLICY)
+    for b in bounds.values():
+        assert b.vel_mps <= envelope.vel_mps and b.acc_mps2 <= envelope.acc_mps2 and b.jerk_mps3 <= envelope.jerk_mps3
+    dt = 1e-3
+    seen: dict[str, list[np.ndarray]] = {}
+    for command in COMMANDS:
+        mission = Mission(MissionConfig())
+        mission.start("hover", 0.0, np.array([0.0, 0.0, start_z]))
+        mission.reference(0.0)
+        mission.start(command, 0.0, np.array([0.0, 0.0, start_z]))
+        for t in np.arange(0.0, 40.0, dt):
+            ref = mission.reference(float(t))
+            if ref is None:
+                break
+            seen.setdefault(mission.segment, []).append((ref.vel_enu_mps[2], ref.acc_enu_mps2[2]))
+    assert {"landing_test", "lemniscate", "land", "hover"} <= set(seen) <= set(bounds)
+    assert ("takeoff" in seen) == (abs(start_z - MissionConfig().takeoff_height_m) > MissionConfig().at_point_tol_m)
+    for segment, rows in seen.items():
+        v, a = np.array(rows).T
+        jerk = np.abs(np.diff(a)) / dt
+        b = bounds[segment]
+        assert np.max(np.abs(v)) <= b.vel_mps * (1 + 1e-9) + 1e-12, segment
+        assert np.max(np.abs(a)) <= b.acc_mps2 * (1 + 1e-9) + 1e-12, segment
+        # a segment's first step may include the switch from the one before (a jump in z̈* the quintics avoid)
+        assert np.max(jerk[1:], initial=0.0) <= b.jerk_mps3 * 1.001 + 1e-9, segment

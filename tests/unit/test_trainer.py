@@ -10,7 +10,7 @@ import pytest
 from flight.hotswap import gate
 from neso.netfile import load_network
 from neso.certificate import flight_budget
-from neso.learning import RECIPES
+from neso.learning import RECIPES, recipe_bound
 from neso.types import OMEGA_O_RPS
 from services import registry
 from services.trainer import Job, TrainerConfig, parse_job, train_job
@@ -42,8 +42,11 @@ def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_
     assert net.feature_set is base.feature_set and net.layer_sizes == base.layer_sizes
     assert net.metadata["label"] == recipe.tdr_label == "applied" and net.metadata["recipe"] == recipe.name
     assert not np.array_equal(net.input_std, base.input_std), "z-scores refitted on the new data (recipe 'fit')"
-    l_max = flight_budget(10.0, 6.0, 15.0)
-    assert net.bound_units == "physical" and net.lipschitz_bound == pytest.approx(recipe.certified_fraction * l_max)
+    bound = recipe_bound(recipe, 10.0, 6.0, 15.0)  # the trainer's budget: fly well at those gains, 0.9 of it
+    assert bound == pytest.approx(recipe.certified_fraction * flight_budget(
+        10.0, 6.0, 15.0, exogenous_fraction=recipe.exogenous_fraction, exogenous_roles=("attitude",)))
+    assert net.bound_units == "physical" and net.lipschitz_bound == pytest.approx(bound)
+    assert net.metadata["mass_kg"] == "1.0"  # the vehicle the recordings flew: the file says what it was made for
     assert net.certified_lipschitz_state() <= net.lipschitz_bound * (1 + 1e-9)
     exo = tuple(i for i in range(net.n_inputs) if i not in net.state_columns)
     assert net.certified_lipschitz_columns(exo) <= recipe.exogenous_fraction * net.lipschitz_bound * (1 + 1e-9)
@@ -54,7 +57,8 @@ def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_
     (entry,) = registry.entries(config.registry)
     assert entry.id == result.network_id
     cert = entry.info["certificate"]
-    assert cert["holds"] is True and cert["max_certified"] == pytest.approx(l_max) and cert["margin"] > 0
+    assert cert["holds"] is True and cert["margin"] > 0 and cert["bound_ratio"] <= cert["max_bound_ratio"]
+    assert cert["bound_cm"] > cert["pdeso_bound_cm"] > 0
     pred = entry.info["predicted"]
     assert pred == result.predicted and pred["seconds"] > 5
     assert pred["rmse_active_cm"] > 0 and pred["rmse_candidate_cm"] > 0
