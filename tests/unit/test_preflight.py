@@ -102,3 +102,24 @@ def test_the_ev_delay_to_set_is_the_measured_delay_or_zero_once_px4_takes_the_ca
     assert verdicts(replace(READY, params={**WORLD, "EKF2_EV_DELAY": 10.0}))["EKF2_EV_DELAY"][0] == GO
     synced = verdicts(replace(READY, px4_uses_capture_time=True, params={**WORLD, "EKF2_EV_DELAY": 10.0}))
     assert synced["EKF2_EV_DELAY"][0] == WARNING and synced["EKF2_EV_DELAY"][2].startswith("param set EKF2_EV_DELAY 0")
+
+
+def test_the_gateway_recomputes_the_estimators_certificate_through_its_public_api():
+    """The network report's certificate (what flight.estimator computes) judged again with
+    neso.certificate.flight_certificate: the same verdict; a report of another form falls back to the estimator's
+    own verdict and says so."""
+    from types import SimpleNamespace
+
+    from flight.estimator import network_certificate
+    from neso.certificate import LoopPlant
+    from neso.control import ControlConfig
+    from neso.netfile import load_network
+    from services.px4_preflight import CertificateCheck
+    from tests.helpers import BASE
+
+    report = network_certificate(load_network(BASE), 10.0, 6.0, 15.0, LoopPlant.of(ControlConfig())).to_dict()
+    again = CertificateCheck().verdict(SimpleNamespace(certificate=report))
+    assert (again["holds"], again["text"]) == (report["holds"], report["text"])
+    odd = CertificateCheck().verdict(SimpleNamespace(certificate={"holds": True, "text": "certificate holds"}))
+    assert odd["holds"] and "the estimator's verdict: its report could not be recomputed here" in odd["text"]
+    assert CertificateCheck().verdict(None) is None
