@@ -59,6 +59,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--mass-kg", type=float, default=ctl.mass_kg,
                    help="the vehicle's mass as the controller flies it (its thrust in newtons is for it); the estimator "
                         "certifies what flies for it, and refuses a network with a thrust input made for another mass")
+    p.add_argument("--px4-params", default="",
+                   help="--vehicle px4: PX4 SITL's airframe file (default: the world's, sim/px4/neso_quad.params; "
+                        "another one rehearses a vehicle set up otherwise: `neso preflight` names what is wrong)")
     p.add_argument("--gains", default=None, choices=tuple(GAIN_SETS),
                    help="the controller's start-up gains (live parameters after): paper, or px4 (xy softer for PX4's "
                         "slower attitude loop; the default with --vehicle px4, paper otherwise)")
@@ -257,7 +260,7 @@ def build_specs(args) -> list[ProcessSpec]:
                                      cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             if role.name == "source" and args.vehicle == "px4":  # the autopilot: no bus role, a process of the loop
                 specs.append(ProcessSpec("px4" if len(vehicles) == 1 else f"{vehicle}/px4",
-                                         px4_argv(args.px4_instance + i, vehicle),
+                                         px4_argv(args.px4_instance + i, vehicle, args.px4_params),
                                          cpus=loop_cpus))
     return specs
 
@@ -296,13 +299,14 @@ def motive_argv(args) -> tuple[str, ...]:
                               "--natnet-version", args.natnet_version)
 
 
-def px4_argv(instance: int, vehicle: str) -> tuple[str, ...]:
+def px4_argv(instance: int, vehicle: str, params: str = "") -> tuple[str, ...]:
     """``neso px4`` as PX4 SITL ``instance`` for ``vehicle``, in a working folder of its own, emptied at each
-    (re)start so PX4 boots fresh (its .ulg logs stay there until the next)."""
+    (re)start so PX4 boots fresh (its .ulg logs stay there until the next); ``params``: another airframe file."""
     import tempfile
 
     workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{instance}-{vehicle}")
-    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir)
+    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir,
+                              *(("--params", params) if params else ()))
 
 
 def run(args) -> int:
@@ -316,8 +320,14 @@ def run(args) -> int:
               "own clock; PX4 SITL steps the world itself)", flush=True)
         return 2
     if args.vehicle == "px4":
-        from sim.px4_sitl import missing_px4
+        from sim.px4_sitl import load_params, missing_px4
 
+        if args.px4_params:
+            try:
+                load_params(args.px4_params)
+            except (OSError, ValueError) as exc:
+                print(f"neso up: --px4-params: {exc}", flush=True)
+                return 2
         if missing_px4():
             print(f"neso up: {missing_px4()}", flush=True)
             return 2
