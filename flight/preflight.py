@@ -167,7 +167,7 @@ def _parameters(i: PreflightInputs, c: PreflightConfig) -> list[Item]:
         ok, fix = judge(p, value)
         found = "missing" if value is None else f"{value:g}"
         out.append(Item(p.name, GO if ok else p.required.severity, found,
-                        "" if ok else f"{fix} (required: {p.required.text()}; why: services/README.md's lab table)"))
+                        "" if ok else f"{fix} (required {p.required.text()})"))
     return out
 
 

@@ -355,6 +355,11 @@ class GatewayCore:
         self.events.append(("info", f"hover thrust calibrated: {self.hover_thrust_norm:.4f} from {len(samples)} samples"))
 
 
+def _is_warning(status_text: str) -> bool:
+    """A STATUSTEXT as the gateway keeps it (``SEVERITY: text``) of severity warning or worse."""
+    return status_text.split(":")[0] in ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")
+
+
 def _scale_tilt(roll: float, pitch: float, max_tilt: float) -> tuple[float, float]:
     """Roll and pitch scaled by a common factor so the tilt is ``max_tilt`` (bisection; direction kept)."""
     lo, hi = 0.0, 1.0
@@ -717,7 +722,9 @@ class Px4Link:
             verdict = self.check_preflight()
         if verdict.go:
             return ""
-        items = "; ".join(f"{i.name}: {i.found}" + (f" → {i.fix}" if i.fix else "") for i in verdict.no_go())
+        bad = verdict.no_go()
+        items = ("; ".join(f"{i.name}: {i.found}" + (f" → {i.fix}" if i.fix else "") for i in bad) if len(bad) <= 2
+                 else ", ".join(i.name for i in bad))
         if override:
             note = f"armed on a preflight NO-GO by the operator's override: {items}"
             self.node.event("warning", note)
@@ -760,7 +767,7 @@ class Px4Link:
         params, error = self.params
         return PreflightInputs(
             connected=connected, autopilot=t["autopilot"], armable=t.get("armable"),
-            armable_why=t["status_text"] if t.get("armable") is False else "", params=params,
+            armable_why=self._px4_warning() if t.get("armable") is False else "", params=params,
             params_error=error if connected else "", local_position_ok=t.get("local_position_ok"),
             ev_offset_m=offset, mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
             services=self.watch.services(self.node.alive_services(), now), delay_ms=delay,
@@ -810,13 +817,16 @@ class Px4Link:
             with self.node.lock:
                 return False, self.core.refusal(name, result, time.monotonic(), ready=self.tele["armable"], said=said)
 
+    def _px4_warning(self) -> str:
+        """PX4's newest warning or worse (its arming refusals and failed checks), "" when none came."""
+        return next((text for _, text in reversed(self.said) if _is_warning(text)), "")
+
     def _said_since(self, since_s: float, wait_s: float = 0.5) -> str:
         """PX4's newest warning or worse (STATUSTEXT) after ``since_s`` (it follows a refusal's COMMAND_ACK: waited
         up to ``wait_s``)."""
         deadline = time.monotonic() + wait_s
         while True:
-            said = [text for t, text in self.said if t >= since_s and text.split(":")[0] in
-                    ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")]
+            said = [text for t, text in self.said if t >= since_s and _is_warning(text)]
             if said or time.monotonic() >= deadline:
                 return said[-1] if said else ""
             time.sleep(0.02)
