@@ -26,10 +26,13 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
 The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
 companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
 re-sends the last one at 20 Hz), answers ``arm disarm takeoff land hold offboard_start
-offboard_stop calibrate_hover`` commands with the vehicle's acknowledgement, publishes
+offboard_stop calibrate_hover preflight param_set`` commands with the vehicle's acknowledgement in words, publishes
 TelemetryMsg at 10 Hz, and forwards the bus state (motion capture) to PX4 as external-vision
-ODOMETRY; while no state has come for ``pose_lost_after_s`` it repeats the last pose at 50 Hz with quality -1
-(MAVLink's "odometry has failed"), so that PX4 knows the motion capture is lost rather than late.
+ODOMETRY stamped with the pose's capture (answering PX4's TIMESYNC so that it can use that time); while no state has
+come for ``pose_lost_after_s`` it repeats the last pose at 50 Hz with quality -1 (MAVLink's "odometry has failed"),
+so that PX4 knows the motion capture is lost rather than late. Every second it judges whether the vehicle may arm
+(:mod:`flight.preflight`, :mod:`services.px4_preflight`), publishes the verdict and refuses ``arm`` on a no-go unless
+the operator overrides it; it gives the vehicle a global origin only when it reports none.
 """
 from __future__ import annotations
 
@@ -46,11 +49,10 @@ import numpy as np
 from neso.frames import (NED_FROM_ENU, attitude_enu_from_ned, attitude_ned_from_enu, matrix_from_quat,
                          quat_ned_from_enu_euler, tilt_rad)
 from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
-from flight.preflight import PreflightConfig, PreflightInputs, Verdict, preflight
 from runtime.options import add_options, comma_list, config_from_options, option
-from runtime.schema import PreflightMsg, SetpointMsg, StateMsg, TelemetryMsg
+from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
 from services.px4_preflight import (FAST_TIMESYNC_HZ, MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
-                                   BusWatch, CertificateCheck, TimeSync, read_parameters)
+                                   GatewayPreflight, TimeSync)
 
 # modes in which the vehicle flies (or waits) on its own, or not reported yet: setpoints are withheld (see _may_stream)
 VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
@@ -407,12 +409,7 @@ class Px4Link:
         self.last_pose_capture_s = 0.0  # its capture on this process's clock (ODOMETRY time_usec)
         self.actions: queue.Queue = queue.Queue()
         self.param = self.timesync = None
-        self.watch, self.certificate = BusWatch(), CertificateCheck()
-        self.params: tuple[dict, str] = ({}, "not read yet")
-        self.params_read_s = -math.inf
-        self.verdict: Verdict | None = None
-        self.verdict_s = -math.inf
-        self.preflight_lock = threading.Lock()  # one check at a time (the 1 Hz loop, a command)
+        self.preflight = GatewayPreflight(self)
         self.said: deque[tuple[float, str]] = deque(maxlen=20)  # PX4's STATUSTEXT, with its arrival
 
     # -- life ----------------------------------------------------------------------------
@@ -427,13 +424,13 @@ class Px4Link:
             node.log(f"MAVLink connection {self.config.mavlink}: {result}")
             node.subscribe("setpoint", self._on_setpoint)
             node.subscribe("state", self._on_state)
-            node.subscribe("network", self.watch.on_network)
-            node.subscribe_health(self.watch.on_health)
+            node.subscribe("network", self.preflight.watch.on_network)
+            node.subscribe_health(self.preflight.watch.on_health)
             node.on_command(self._on_command, unlocked=COMMANDS)
             node.status_hook = self._status
             threading.Thread(target=self._telemetry_loop, name="px4-telemetry", daemon=True).start()
             threading.Thread(target=self._watchdog_loop, name="px4-watchdog", daemon=True).start()
-            threading.Thread(target=self._preflight_loop, name="px4-preflight", daemon=True).start()
+            threading.Thread(target=self.preflight.loop, name="px4-preflight", daemon=True).start()
             self._connect()
             while not node.stopping:
                 try:
@@ -661,133 +658,22 @@ class Px4Link:
             with self.node.lock:
                 return self.core.start_calibration(time.monotonic())
         if name == "preflight":  # a fresh check, the vehicle's parameters read again (seconds: off the worker)
-            verdict = self.check_preflight(read_params=True)
+            verdict = self.preflight.check(read_params=True)
             return verdict.go, verdict.table()
         if self.system is None:
             return False, f"no vehicle connected on {self.config.mavlink}"
         if name == "arm":
-            refusal = self._arm_gate(args.get("override") is True)
+            refusal = self.preflight.arm_gate(args.get("override") is True)
             if refusal:
                 return False, refusal
         if name == "param_set":
-            return self._param_set(args)
+            return self.preflight.param_set(args)
         done = threading.Event()
         answer: list = []
         self.actions.put((name, lambda result: (answer.append(result), done.set())))
         if not done.wait(5.0):
             return False, f"{name}: no answer from the vehicle within 5 s"
         return answer[0]
-
-    # -- preflight ------------------------------------------------------------------------------
-    def _param_set(self, args: dict) -> tuple[bool, str]:
-        """``param_set {name, value}``: one parameter of the table (flight/px4_params.py) set on the vehicle over
-        MAVLink (MAVSDK's Param, PARAM_SET), disarmed only; the next preflight reads it back."""
-        from mavsdk.plugins.param import ParamError
-
-        from flight.px4_params import row
-
-        name, value = args.get("name"), args.get("value")
-        try:
-            p = row(str(name))
-        except KeyError:
-            return False, f"param_set: {name!r} is not in the parameter table (flight/px4_params.py; others: QGroundControl)"
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            return False, f"param_set: value must be a number, got {value!r}"
-        if p.kind == "int32" and value != int(value):
-            return False, f"param_set: {p.name} is an integer, got {value!r}"
-        if self.tele["armed"]:
-            return False, "param_set: the vehicle is armed (disarm first)"
-        try:
-            if p.kind == "int32":
-                self.param.set_param_int(p.name, int(value))
-            else:
-                self.param.set_param_float(p.name, float(value))
-        except ParamError as exc:
-            return False, f"param_set {p.name} {value:g}: refused by the vehicle: {exc.result.name}"
-        self.params_read_s = -math.inf  # the next check reads them all again
-        self.node.event("info", f"param_set {p.name} {value:g} (operator)")
-        return True, f"{p.name} set to {value:g} on the vehicle"
-
-
-    def _arm_gate(self, override: bool) -> str:
-        """Why an arm command is refused ("" when it may go on): the newest preflight verdict (a fresh check if it
-        is older than ``preflight_fresh_s``) says no-go and the operator did not override it. An override is an
-        event and goes into the published verdict (both recorded)."""
-        verdict = self.verdict
-        fresh = verdict is not None and time.monotonic() - self.verdict_s <= self.config.preflight_fresh_s
-        if override and not fresh:  # no verdict to override yet: said so, not waited for
-            self.node.event("warning", "armed by the operator's override before preflight had judged the vehicle")
-            return ""
-        if not fresh:
-            verdict = self.check_preflight()
-        if verdict.go:
-            return ""
-        bad = verdict.no_go()
-        items = ("; ".join(f"{i.name}: {i.found}" + (f" → {i.fix}" if i.fix else "") for i in bad) if len(bad) <= 2
-                 else ", ".join(i.name for i in bad))
-        if override:
-            note = f"armed on a preflight NO-GO by the operator's override: {items}"
-            self.node.event("warning", note)
-            self._publish_verdict(verdict, self.verdict_s, override=note)
-            return ""
-        return (f"arm refused: preflight NO-GO: {items} (`neso preflight` prints every item; `neso cmd px4_gateway "
-                "arm override=true` arms anyway, logged and recorded)")
-
-    def check_preflight(self, *, read_params: bool = False) -> Verdict:
-        """Judge now (:func:`flight.preflight.preflight`) from what the gateway knows, reading the vehicle's
-        parameters first when asked or when the last read is older than ``preflight_params_s`` and it is
-        disarmed; publish the verdict."""
-        with self.preflight_lock:
-            now = time.monotonic()
-            stale = now - self.params_read_s > self.config.preflight_params_s and self.tele["armed"] is not True
-            if self.param is not None and (read_params or stale):
-                self.params = read_parameters(self.param)
-                self.params_read_s = time.monotonic()
-            verdict = preflight(self._preflight_inputs(), PreflightConfig(pose_lost_after_s=self.config.pose_lost_after_s))
-            self.verdict, self.verdict_s = verdict, time.monotonic()
-            self._publish_verdict(verdict, self.verdict_s)
-            return verdict
-
-    def _preflight_inputs(self) -> PreflightInputs:
-        t, now = self.tele, time.monotonic()
-        connected = self.system is not None and self.system.is_connected()
-        ts = self.timesync
-        rtt = ts.rtt_p50_s() if ts is not None else None
-        with self.node.lock:
-            pose, pose_s = self.last_pose, self.core.last_pose_s
-            delay = self.core.delay_to_vehicle_ms((rtt or 0.0) / 2)
-            mocap = self.watch.source_counters()
-            network = self.watch.network
-        offset = None  # horizontal: PX4's local z may be shifted by its global origin's altitude (EKF2 setAltOrigin,
-        # ekf_helper.cpp; measured in SITL: 487.95 m with the origin at 488 m, the motion capture at -0.05 m)
-        if pose is not None and pose_s is not None and now - pose_s < 0.5 and t.get("local_position_ok"):
-            x, y, _ = pose.pos_enu_m
-            n, e, _ = t["pos_ned"]
-            offset = math.dist((n, e), (y, x))
-        params, error = self.params
-        return PreflightInputs(
-            connected=connected, autopilot=t["autopilot"], armable=t.get("armable"),
-            armable_why=self._px4_warning() if t.get("armable") is False else "", params=params,
-            params_error=error if connected else "", local_position_ok=t.get("local_position_ok"),
-            ev_offset_m=offset, mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
-            services=self.watch.services(self.node.alive_services(), now), delay_ms=delay,
-            px4_uses_capture_time=ts is not None and ts.px4_converged(), time_sync_answers=ts.answered if ts else 0,
-            certificate=self.certificate.verdict(network),
-            battery_remaining=t["battery"] if math.isfinite(t["battery"]) else -1.0,
-            battery_v=t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0)
-
-    def _publish_verdict(self, verdict: Verdict, checked_s: float, override: str = "") -> None:
-        self.node.publisher("preflight")(PreflightMsg(stamp_s=time.monotonic(), checked_s=checked_s, go=verdict.go,
-                                                      items=verdict.as_items(), override=override[:512]))
-
-    def _preflight_loop(self) -> None:
-        while not self.node.wait(self.config.preflight_period_s):
-            if self.timesync is not None:
-                self.timesync.ask()
-            try:
-                self.check_preflight()
-            except Exception as exc:  # a check must never stop the gateway: reported, tried again next second
-                self.node.event("error", f"preflight check failed: {type(exc).__name__}: {exc}")
 
     # -- the worker (blocking MAVSDK calls) ----------------------------------------------------
     def _do(self, name: str) -> tuple[bool, str]:
@@ -817,7 +703,7 @@ class Px4Link:
             with self.node.lock:
                 return False, self.core.refusal(name, result, time.monotonic(), ready=self.tele["armable"], said=said)
 
-    def _px4_warning(self) -> str:
+    def px4_warning(self) -> str:
         """PX4's newest warning or worse (its arming refusals and failed checks), "" when none came."""
         return next((text for _, text in reversed(self.said) if _is_warning(text)), "")
 

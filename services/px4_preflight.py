@@ -1,4 +1,5 @@
-"""The px4_gateway's preflight, the I/O side (the verdict itself is :mod:`flight.preflight`): the vehicle's
+"""The px4_gateway's preflight, the I/O side (the verdict itself is :mod:`flight.preflight`; :class:`GatewayPreflight`
+judges every second, publishes and gates ``arm``): the vehicle's
 parameters read over MAVLink (MAVSDK's Param plugin, one ``PARAM_REQUEST_READ`` each), what the bus shows (every
 service's health and liveliness, the estimator's network), the certificate recomputed through its public API, and
 PX4's time sync with the gateway (TIMESYNC), which lets PX4 use the capture time the gateway stamps ODOMETRY with.
@@ -21,8 +22,9 @@ import threading
 import time
 from collections import deque
 
-from flight.preflight import ServiceSeen
+from flight.preflight import PreflightConfig, PreflightInputs, ServiceSeen, Verdict, preflight
 from flight.px4_params import checked
+from runtime.schema import PreflightMsg
 
 CONVERGED_ANSWERS = 500  # PX4's Timesync CONVERGENCE_WINDOW
 MAX_RTT_S = 0.010  # PX4's Timesync MAX_RTT_SAMPLE: an answer slower than this does not count
@@ -184,3 +186,134 @@ class TimeSync:
 
     def close(self) -> None:
         self._direct.unsubscribe_message(self._handle)
+
+
+class GatewayPreflight:
+    """The gateway's preflight: every ``preflight_period_s`` it judges whether the vehicle may arm from what the
+    gateway (``link``: :class:`services.px4_gateway.Px4Link`) knows and what the bus shows, reads the vehicle's
+    parameters again every ``preflight_params_s`` while it is disarmed, publishes the verdict
+    (:class:`runtime.schema.PreflightMsg`) and is the arm command's gate."""
+
+    def __init__(self, link) -> None:
+        self.link = link
+        self.watch, self.certificate = BusWatch(), CertificateCheck()
+        self.params: tuple[dict, str] = ({}, "not read yet")
+        self.params_read_s = -math.inf
+        self.verdict: Verdict | None = None
+        self.verdict_s = -math.inf
+        self.lock = threading.Lock()  # one check at a time (the 1 Hz loop, a command)
+
+    def param_set(self, args: dict) -> tuple[bool, str]:
+        """``param_set {name, value}``: one parameter of the table (flight/px4_params.py) set on the vehicle over
+        MAVLink (MAVSDK's Param, PARAM_SET), disarmed only; the next preflight reads it back."""
+        from mavsdk.plugins.param import ParamError
+
+        from flight.px4_params import row
+
+        link = self.link
+        name, value = args.get("name"), args.get("value")
+        try:
+            p = row(str(name))
+        except KeyError:
+            return False, f"param_set: {name!r} is not in the parameter table (flight/px4_params.py; others: QGroundControl)"
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return False, f"param_set: value must be a number, got {value!r}"
+        if p.kind == "int32" and value != int(value):
+            return False, f"param_set: {p.name} is an integer, got {value!r}"
+        if link.tele["armed"]:
+            return False, "param_set: the vehicle is armed (disarm first)"
+        try:
+            if p.kind == "int32":
+                link.param.set_param_int(p.name, int(value))
+            else:
+                link.param.set_param_float(p.name, float(value))
+        except ParamError as exc:
+            return False, f"param_set {p.name} {value:g}: refused by the vehicle: {exc.result.name}"
+        self.params_read_s = -math.inf  # the next check reads them all again
+        link.node.event("info", f"param_set {p.name} {value:g} (operator)")
+        return True, f"{p.name} set to {value:g} on the vehicle"
+
+    def arm_gate(self, override: bool) -> str:
+        """Why an arm command is refused ("" when it may go on): the newest preflight verdict (a fresh check if it
+        is older than ``preflight_fresh_s``) says no-go and the operator did not override it. An override is an
+        event and goes into the published verdict (both recorded)."""
+        link = self.link
+        verdict = self.verdict
+        fresh = verdict is not None and time.monotonic() - self.verdict_s <= link.config.preflight_fresh_s
+        if override and not fresh:  # no verdict to override yet: said so, not waited for
+            link.node.event("warning", "armed by the operator's override before preflight had judged the vehicle")
+            return ""
+        if not fresh:
+            verdict = self.check()
+        if verdict.go:
+            return ""
+        bad = verdict.no_go()
+        items = ("; ".join(f"{i.name}: {i.found}" + (f" → {i.fix}" if i.fix else "") for i in bad) if len(bad) <= 2
+                 else ", ".join(i.name for i in bad))
+        if override:
+            note = f"armed on a preflight NO-GO by the operator's override: {items}"
+            link.node.event("warning", note)
+            self._publish(verdict, self.verdict_s, override=note)
+            return ""
+        return (f"arm refused: preflight NO-GO: {items} (`neso preflight` prints every item; `neso cmd px4_gateway "
+                "arm override=true` arms anyway, logged and recorded)")
+
+    def check(self, *, read_params: bool = False) -> Verdict:
+        """Judge now (:func:`flight.preflight.preflight`) from what the gateway knows, reading the vehicle's
+        parameters first when asked or when the last read is older than ``preflight_params_s`` and it is
+        disarmed; publish the verdict."""
+        link = self.link
+        with self.lock:
+            now = time.monotonic()
+            stale = now - self.params_read_s > link.config.preflight_params_s and link.tele["armed"] is not True
+            if link.param is not None and (read_params or stale):
+                self.params = read_parameters(link.param)
+                self.params_read_s = time.monotonic()
+            verdict = preflight(self._inputs(), PreflightConfig(pose_lost_after_s=link.config.pose_lost_after_s))
+            self.verdict, self.verdict_s = verdict, time.monotonic()
+            self._publish(verdict, self.verdict_s)
+            return verdict
+
+    def _inputs(self) -> PreflightInputs:
+        link = self.link
+        t, now = link.tele, time.monotonic()
+        connected = link.system is not None and link.system.is_connected()
+        ts = link.timesync
+        rtt = ts.rtt_p50_s() if ts is not None else None
+        with link.node.lock:
+            pose, pose_s = link.last_pose, link.core.last_pose_s
+            delay = link.core.delay_to_vehicle_ms((rtt or 0.0) / 2)
+            mocap = self.watch.source_counters()
+            network = self.watch.network
+        offset = None  # horizontal: PX4's local z may be shifted by its global origin's altitude (EKF2 setAltOrigin,
+        # ekf_helper.cpp; measured in SITL: 487.95 m with the origin at 488 m, the motion capture at -0.05 m)
+        if pose is not None and pose_s is not None and now - pose_s < 0.5 and t.get("local_position_ok"):
+            x, y, _ = pose.pos_enu_m
+            n, e, _ = t["pos_ned"]
+            offset = math.dist((n, e), (y, x))
+        params, error = self.params
+        return PreflightInputs(
+            connected=connected, autopilot=t["autopilot"], armable=t.get("armable"),
+            armable_why=link.px4_warning() if t.get("armable") is False else "", params=params,
+            params_error=error if connected else "", local_position_ok=t.get("local_position_ok"),
+            ev_offset_m=offset, mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
+            services=self.watch.services(link.node.alive_services(), now), delay_ms=delay,
+            px4_uses_capture_time=ts is not None and ts.px4_converged(), time_sync_answers=ts.answered if ts else 0,
+            certificate=self.certificate.verdict(network),
+            battery_remaining=t["battery"] if math.isfinite(t["battery"]) else -1.0,
+            battery_v=t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0)
+
+    def _publish(self, verdict: Verdict, checked_s: float, override: str = "") -> None:
+        self.link.node.publisher("preflight")(PreflightMsg(stamp_s=time.monotonic(), checked_s=checked_s,
+                                                           go=verdict.go, items=verdict.as_items(),
+                                                           override=override[:512]))
+
+    def loop(self) -> None:
+        link = self.link
+        while not link.node.wait(link.config.preflight_period_s):
+            if link.timesync is not None:
+                link.timesync.ask()
+            try:
+                self.check()
+            except Exception as exc:  # a check must never stop the gateway: reported, tried again next second
+                link.node.event("error", f"preflight check failed: {type(exc).__name__}: {exc}")
