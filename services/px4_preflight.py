@@ -202,6 +202,7 @@ class GatewayPreflight:
         self.verdict: Verdict | None = None
         self.verdict_s = -math.inf
         self.lock = threading.Lock()  # one check at a time (the 1 Hz loop, a command)
+        self.override, self.override_s = "", -math.inf  # an operator's arm on a no-go, carried while it flies
 
     def param_set(self, args: dict) -> tuple[bool, str]:
         """``param_set {name, value}``: one parameter of the table (flight/px4_params.py) set on the vehicle over
@@ -253,7 +254,8 @@ class GatewayPreflight:
         if override:
             note = f"armed on a preflight NO-GO by the operator's override: {items}"
             link.node.event("warning", note)
-            self._publish(verdict, self.verdict_s, override=note)
+            self.override, self.override_s = note, time.monotonic()
+            self._publish(verdict, self.verdict_s)
             return ""
         return (f"arm refused: preflight NO-GO: {items} (`neso preflight` prints every item; `neso cmd px4_gateway "
                 "arm override=true` arms anyway, logged and recorded)")
@@ -303,10 +305,14 @@ class GatewayPreflight:
             battery_remaining=t["battery"] if math.isfinite(t["battery"]) else -1.0,
             battery_v=t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0)
 
-    def _publish(self, verdict: Verdict, checked_s: float, override: str = "") -> None:
-        self.link.node.publisher("preflight")(PreflightMsg(stamp_s=time.monotonic(), checked_s=checked_s,
-                                                           go=verdict.go, items=verdict.as_items(),
-                                                           override=override[:512]))
+    def _publish(self, verdict: Verdict, checked_s: float) -> None:
+        """The verdict on the bus; an override goes with every one until the vehicle is disarmed again (10 s after it
+        at the least), so a flight's recording has it however long after the arm the vehicle took off."""
+        now = time.monotonic()
+        if self.override and self.link.tele["armed"] is False and now - self.override_s > 10.0:
+            self.override = ""
+        self.link.node.publisher("preflight")(PreflightMsg(stamp_s=now, checked_s=checked_s, go=verdict.go,
+                                                           items=verdict.as_items(), override=self.override[:512]))
 
     def loop(self) -> None:
         link = self.link
