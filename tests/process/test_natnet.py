@@ -246,12 +246,13 @@ def test_a_wrong_rigid_body_name_is_refused_naming_the_streamed_ones_in_every_ve
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with NatNetServer(NatNetServerConfig(bodies={"uav1": 1, "uav2": 7}, command_port=free_udp_port(),
                                          data_port=free_udp_port(), version=version)) as server, hub(endpoint):
+        port = server.command_port
         proc = source(server, endpoint, "uav9")
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 2, out
     refusal = [line for line in out.splitlines() if "uav9" in line and "streams" in line]
     assert refusal == [f"source: rigid body 'uav9' is not streamed by the NatNet server at 127.0.0.1:"
-                       f"{server.command_port}; it streams ['uav1', 'uav2'] (--rigid-body, or Motive's Assets pane: "
+                       f"{port}; it streams ['uav1', 'uav2'] (--rigid-body, or Motive's Assets pane: "
                        "the rigid body's name and Streaming on)"], out
     assert "Traceback" not in out
 

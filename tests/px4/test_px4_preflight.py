@@ -15,6 +15,7 @@ from pymavlink import mavutil
 
 from flight.px4_params import checked
 from runtime.client import command
+from runtime.schema import PreflightMsg
 from tests.busutil import role_pid, wait_for
 from tests.px4.conftest import px4_flight
 
@@ -94,12 +95,20 @@ def test_each_required_parameter_wrong_in_turn_is_a_no_go_naming_it_and_arming_i
 
 
 def test_an_operators_override_arms_on_a_no_go_and_says_so(flight):
+    """The override is an event and goes with every published verdict while the vehicle is armed (the recorder
+    keeps both with the flight)."""
+    verdicts: list[PreflightMsg] = []
+    sub = flight.s.declare_subscriber(flight.probe.keys.topic("preflight"),
+                                      lambda sample: verdicts.append(PreflightMsg.from_bytes(sample.payload.to_bytes())))
     assert param_set(flight, "EKF2_EV_QMIN", 0).ok
     preflight(flight)
     reply = flight.cmd("px4_gateway", "arm", override=True)
     assert reply.ok, reply.message
     wait_for("PX4 armed", lambda: (t := flight.telemetry()) is not None and t.armed, 10)
     assert flight.log("armed on a preflight NO-GO by the operator's override: EKF2_EV_QMIN: 0")
+    time.sleep(2.5)
+    sub.undeclare()
+    assert sum("override: EKF2_EV_QMIN: 0" in v.override and not v.go for v in verdicts) >= 2, verdicts[-1:]
     assert flight.cmd("px4_gateway", "disarm").ok
     wait_for("PX4 disarmed", lambda: (t := flight.telemetry()) is not None and not t.armed, 10)
     assert param_set(flight, "EKF2_EV_QMIN", 1).ok
@@ -135,3 +144,26 @@ def _instance_of(flight) -> int:
         if "neso px4: PX4 SITL instance " in line:
             return int(line.split("instance ")[1].split()[0])
     raise AssertionError("PX4's instance is not in the output")
+
+
+def test_px4_dates_external_vision_by_the_capture_time(flight):
+    """PX4's own log (its ULog, read while it runs): once its time sync with the gateway has converged, each
+    external-vision sample is dated by the capture the gateway put in ODOMETRY's time_usec, ~10 ms (the world's mocap
+    latency) before it arrived; before (time_usec 0, or no time sync) PX4 dated it on arrival."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+    from pyulog import ULog
+
+    workdir = Path(tempfile.gettempdir()) / f"neso-px4-{os.getuid()}-{_instance_of(flight)}-uav1"
+    ulog = max(workdir.glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
+    data = ULog(str(ulog), ["vehicle_visual_odometry"]).data_list[0].data
+    age_ms = (data["timestamp"].astype(np.int64) - data["timestamp_sample"].astype(np.int64)) / 1e3
+    t_s = data["timestamp"] / 1e6
+    first = int(np.argmax(age_ms > 1.0))
+    print(f"\n{ulog.name}: PX4 dates external vision by its capture from {t_s[first] - t_s[0]:.1f} s after the first "
+          f"sample; then {np.median(age_ms[first:]):.1f} ms before arrival (median; p1 {np.percentile(age_ms[first:], 1):.1f}, "
+          f"p99 {np.percentile(age_ms[first:], 99):.1f})")
+    assert age_ms[0] == 0.0 and first > 0, "dated on arrival before the time sync converged"
+    assert 5.0 < np.median(age_ms[-100:]) < 15.0, "then by the capture: the world's 10 ms mocap latency"
