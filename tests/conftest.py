@@ -48,7 +48,8 @@ ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
 # beside the flights starved them), at most two PX4 SITL flights at a time.
 SERIAL = {"browser": "browser", "px4/test_px4_sitl.py": "px4-a", "px4/test_px4_tdr.py": "px4-a",
           "px4/test_px4_mocap_lost.py": "px4-a", "px4/test_px4_paper.py": "px4-b",
-          "px4/test_px4_failsafe.py": "px4-b", "px4/test_px4_controller_lost.py": "px4-b"}
+          "px4/test_px4_failsafe.py": "px4-b", "px4/test_px4_controller_lost.py": "px4-b",
+          "px4/test_px4_preflight.py": "px4-b"}
 
 
 def worker_group(nodeid: str) -> str:
