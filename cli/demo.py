@@ -187,17 +187,20 @@ def _steps(values: dict) -> dict:
             if k - 1 in values}
 
 
-def analyse(probe, first_run: Run, second_run: Run, swap_seq: int, report: TdrReport) -> TdrReport:
+def analyse(probe, first_run: Run, second_run: Run, swap_seq: int, report: TdrReport,
+            stages: dict[str, float] | None = None) -> TdrReport:
     """Fill the flight figures of ``report`` from what ``probe`` (a :class:`runtime.probe.Probe`) saw:
     the first world from its lemniscate to its end (the training, the shadow and the swap happen
-    there), the second world's lemniscate."""
+    there), the second world's lemniscate. ``stages``: what happened between them → when it began
+    (``time.monotonic()`` s), to say in which the missed samples fell."""
     refs, truths = probe.get("reference"), probe.get("truth")
     report.rmse_before_cm, report.cycles_before_samples = z_rmse_cm(refs, truths, first_run)
     report.rmse_after_cm, report.cycles_after_samples = z_rmse_cm(refs, truths, second_run)
     report.improvement = 1.0 - report.rmse_after_cm / report.rmse_before_cm
     spans = {"first": (first_run, first_run.first, 2**62), "second": (second_run, second_run.first, second_run.last)}
-    missed, steps, fsteps = {}, {}, {}
+    missed, steps, fsteps, stamps = {}, {}, {}, {}
     for name, (run, lo, hi) in spans.items():
+        stamps.update({m.seq: m.stamp_s for m in run.messages(probe.get("state"), lo, hi)} if name == "first" else {})
         states = {m.seq for m in run.messages(probe.get("state"), lo, hi)}
         sps = {m.seq: m for m in run.messages(probe.get("setpoint"), lo, hi)}
         good = {k for k, m in sps.items() if m.estimate_source == "estimator"}
@@ -214,6 +217,12 @@ def analyse(probe, first_run: Run, second_run: Run, swap_seq: int, report: TdrRe
         "first lemniscate": sum(1 for k in missed["first"] if k <= first_run.last),
         "between (training, shadow, swap)": sum(1 for k in missed["first"] if k > first_run.last),
         "second lemniscate": len(missed["second"])}
+    if stages:
+        began = sorted(stages.items(), key=lambda kv: kv[1])
+        for k in (k for k in missed["first"] if k > first_run.last):
+            stage = next((name for name, t in reversed(began) if t <= stamps[k]), "before " + began[0][0])
+            key = f"between: {stage}"
+            report.missed_by_phase[key] = report.missed_by_phase.get(key, 0) + 1
     report.swap_seq = swap_seq
     near = [v for k, v in steps["first"].items() if abs(k - swap_seq) <= 5]
     normal = [v for k, v in steps["first"].items() if abs(k - swap_seq) > 5] + list(steps["second"].values())
@@ -347,7 +356,9 @@ class _Loop:
             second_run = fly_lemniscate(self.probe, self.cmd, since)
             report.lemniscate_start_t_s.append(second_run.start_t_s)
             report.canary = self.probe.get("network")[-1].canary.get("last", "")
-            analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report)
+            analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report,
+                    {"recording stopped": t_stop, "training": t_train, "shadow": t_offered, "promote": t_promote,
+                     "promoted": t_promoted})
         return report
 
     def new_world(self) -> float:
