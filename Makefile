@@ -45,10 +45,10 @@ demo: setup
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
-# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) parallel workers, each file whole on
-# one (tests/conftest.py groups them: one browser at a time, at most two PX4 flights); the time per tier and the
-# slowest tests at the end.
-WORKERS ?= 4
+# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) workers: one flies the real-time
+# tiers one file after another, the other computes (unit, sim, bus) at nice 10 beside it (tests/conftest.py); the time
+# per tier and the slowest tests at the end.
+WORKERS ?= 2
 test: setup
 	$(PY) -m pytest -n $(WORKERS) --durations=20
 
