@@ -315,8 +315,8 @@ def run_px4_paper(builtin_run, paper, px4: Px4PaperConfig, *, log=print) -> dict
     ``disturbance_z_std_mps2`` (experiment → method → summary over trials) and ``flights`` (every flight's
     bring-up and link figures)."""
     from neso.learning import RECIPES
-    from sim.experiments import (LANDING_METHODS, LEMNISCATE_METHODS, landing_metrics, lemniscate_rmse_cm,
-                                 tdr_network)
+    from sim.experiments import LANDING_METHODS, LEMNISCATE_METHODS, tdr_network
+    from sim.flights import landing_metrics, lemniscate_rmse_cm
 
     recipe_name = next(iter(builtin_run.by_recipe))
     flown = builtin_run.by_recipe[recipe_name]["flown"]

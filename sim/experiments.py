@@ -10,11 +10,8 @@ every flight is seeded, so a run is reproducible. Results come back in the shape
 """
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
-from multiprocessing import get_context
 
 import numpy as np
 
@@ -25,12 +22,12 @@ from neso.estimator import NeuralEsoConfig
 from neso.features import ThrustLag, acceleration_labels, feature_set
 from neso.learning import (DEFAULT_RECIPE, RECIPES, FlightSeries, Recipe, features, identify_thrust_lag, labels,
                            recipe_bound)
-from neso.methods import build_estimator
-from neso.metrics import rmse_m, settling_time_s, steady_state_abs_error_m, summarise
+from neso.metrics import summarise
 from neso.network import LipschitzMLP
 from neso.trajectories import Landing, Lemniscate
 from neso.types import OMEGA_O_RPS
-from sim.runner import FlightLog, fly
+from sim.flights import FlightPool, FlightTask, landing_metrics, lemniscate_rmse_cm, steady_spectrum
+from sim.runner import FlightLog
 from sim.scenarios import make_scenario
 
 LANDING_METHODS = ("pd", "pd_nn", "pd_eso", "neural_eso")
@@ -70,53 +67,6 @@ class PaperConfig:
         """The recipe's bound in its units (the certified one for these gains when it asks for it)."""
         return recipe_bound(recipe, self.control.kp[2], self.control.kd[2], self.omega_o_rps,
                             self.control.vehicle.mass_kg)
-
-
-@dataclass(frozen=True)
-class FlightTask:
-    scenario: str
-    method: str
-    networks: dict
-    seed: int
-    trajectory: object
-    estimator: NeuralEsoConfig
-    control: ControlConfig
-    sim_overrides: tuple[tuple[str, object], ...] = ()  # SimConfig fields replaced in the scenario
-
-
-def run_flight(task: FlightTask) -> FlightLog:
-    estimator = build_estimator(task.method, task.estimator, task.networks)
-    return fly(
-        sim_config=make_scenario(task.scenario, **dict(task.sim_overrides)), estimator=estimator,
-        trajectory=task.trajectory, seed=task.seed, control=task.control,
-    )
-
-
-class _Pool:
-    """Runs flight tasks on ``workers`` processes (fork: the tasks' numpy networks travel pickled)."""
-
-    def __init__(self, workers: int) -> None:
-        self.workers = workers or os.cpu_count() or 1
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=get_context("fork")) if self.workers > 1 else None
-
-    def map(self, tasks: list, fn=run_flight) -> list:
-        """``fn`` (default ``run_flight``, a module-level function) over ``tasks``, in order."""
-        if self._pool is None:
-            return [fn(t) for t in tasks]
-        return list(self._pool.map(fn, tasks))
-
-    def map_groups(self, groups: list[list[FlightTask]]) -> list[list[FlightLog]]:
-        """Fly every group's tasks in one pool pass; the logs come back grouped as given."""
-        flat = self.map([t for group in groups for t in group])
-        out, start = [], 0
-        for group in groups:
-            out.append(flat[start:start + len(group)])
-            start += len(group)
-        return out
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
 
 
 # -- datasets --------------------------------------------------------------------------
@@ -184,23 +134,6 @@ def train(z: np.ndarray, y: np.ndarray, *, bound: float, units: str, config: Pap
 
 
 # -- metrics ---------------------------------------------------------------------------
-def landing_metrics(log: FlightLog, config: PaperConfig) -> tuple[float | None, float | None]:
-    """(steady-state mean |z error| cm, settling time s) of one landing; (None, None) if it diverged."""
-    if log.diverged:
-        return None, None
-    t, e = log.t_s, log.z_error_m
-    descent_end = config.landing.descent_end_s
-    ss = steady_state_abs_error_m(t, e, start_s=descent_end + config.settle_after_descent_s) * 100
-    settle = settling_time_s(t, e, from_s=descent_end, band_m=config.settling_band_m)
-    return ss, settle
-
-
-def lemniscate_rmse_cm(log: FlightLog, config: PaperConfig) -> float | None:
-    if log.diverged:
-        return None
-    return rmse_m(log.t_s, log.z_error_m, start_s=config.lemniscate.cycle_start_s) * 100
-
-
 def disturbance_z_std_mps2(log: FlightLog, config: PaperConfig, scenario: str) -> float | None:
     """The spread (std, m/s²) of the true z disturbance the controller's nominal model does not explain, in the
     window each experiment scores (the lemniscate's cycles; a landing's steady state); None if it diverged."""
@@ -227,7 +160,7 @@ class PaperRun:
 class _Flights:
     """Task factory and timer of one pipeline run."""
 
-    def __init__(self, config: PaperConfig, pool: _Pool, log) -> None:
+    def __init__(self, config: PaperConfig, pool: FlightPool, log) -> None:
         self.config, self.pool, self.log = config, pool, log
         self.est_cfg = config.estimator_config()
         self.seeds = [config.seed * 1000 + 1 + i for i in range(config.trials)]
@@ -247,7 +180,7 @@ class _Flights:
 
 def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
     started = time.perf_counter()
-    pool = _Pool(config.workers)
+    pool = FlightPool(config.workers)
     flights = _Flights(config, pool, log)
     try:
         log("collecting ESO-teacher data (pd_eso, nominal landing)")
@@ -374,18 +307,10 @@ def _noise_free(flights: _Flights, networks: dict, shared: dict) -> tuple[dict, 
     out = {"metric": "steady_state_abs_z_error_cm", "methods": {}, "thrust_std_n": {}, "peak_hz": {}}
     for method, fl in logs.items():
         out["methods"][method] = summarise([landing_metrics(f, config)[0] for f in fl])
-        stats = [_steady_spectrum(f, config) for f in fl if not f.diverged]
+        stats = [steady_spectrum(f, config) for f in fl if not f.diverged]
         out["thrust_std_n"][method] = summarise([s[0] for s in stats])
         out["peak_hz"][method] = summarise([s[1] for s in stats])
     return out, logs
-
-
-def _steady_spectrum(log: FlightLog, config: PaperConfig) -> tuple[float, float]:
-    """(thrust std N, frequency of the largest peak of the z error Hz) after the descent has settled."""
-    late = np.isfinite(log.t_s) & (log.t_s >= config.landing.descent_end_s + config.settle_after_descent_s)
-    e = log.z_error_m[late] - np.mean(log.z_error_m[late])
-    freqs = np.fft.rfftfreq(len(e), config.control.dt_s)
-    return float(np.std(log.thrust_n[late])), float(freqs[1 + np.argmax(np.abs(np.fft.rfft(e))[1:])])
 
 
 def _ablation(flights: _Flights, nets: dict, results: dict, recipe: Recipe, bound: float) -> dict:

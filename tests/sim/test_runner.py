@@ -15,7 +15,8 @@ from neso.methods import METHODS, build_estimator
 from neso.trajectories import Landing, Lemniscate
 from neso.features import DEFAULT_FEATURE_SET, ThrustLag
 from neso.types import OMEGA_O_RPS
-from sim.experiments import FlightTask, run_flight, training_pairs
+from sim.experiments import training_pairs
+from sim.flights import FlightTask, run_flight
 from sim.runner import fly
 from sim.scenarios import make_scenario
 
