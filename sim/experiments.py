@@ -186,9 +186,10 @@ def run_paper(config: PaperConfig = PaperConfig(), *, log=print) -> PaperRun:
         log("collecting ESO-teacher data (pd_eso, nominal landing)")
         teacher_seeds = [config.seed * 1000 + 500 + i for i in range(config.teacher_flights)]
         teacher_logs = pool.map(flights.tasks("nominal_landing", "pd_eso", {}, config.landing, teacher_seeds))
-        lag, lag_var = identify_thrust_lag([t.series() for t in teacher_logs])
+        fit = identify_thrust_lag([t.series() for t in teacher_logs])
+        lag, lag_var = fit.lag, fit.variance_mps4
         log(f"  thrust response identified on the teacher flights: lag {lag.time_constant_s * 1e3:.1f} ms, "
-            f"delay {lag.delay_s * 1e3:.1f} ms")
+            f"delay {lag.delay_s * 1e3:.1f} ms" + (f" ({fit.note})" if fit.at_edge else ""))
         shared = _shared_flights(flights)
         flights.tick("teacher_data_and_baselines")
         by_recipe = {}
