@@ -18,11 +18,15 @@ def shadow_text(rms_mps2: float) -> str:
 
 def learned_text(network: dict) -> str:
     """What a network learned, as the trainer recorded it: validation loss against predicting the mean,
-    and the mean physical slope per input."""
+    the mean physical slope per input, and those on p_z and v_z as a change of the z gains."""
+    from neso.learning import GainChange
+
     vs = network.get("val_loss_vs_mean")
     slopes = network.get("slopes") or {}
+    change = network.get("gain_change")
     vs_part = f"val loss {vs:.3f} × the mean's" if isinstance(vs, (int, float)) else "val loss vs mean not recorded"
-    return vs_part + (" · slopes " + ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items()) if slopes else "")
+    return (vs_part + (" · slopes " + ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items()) if slopes else "")
+            + (f" · as gain {GainChange(change['dkp'], change['dkd']).text()}" if change else ""))
 
 
 def predicted_text(candidate: dict) -> str:

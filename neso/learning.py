@@ -187,6 +187,49 @@ def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, *, time_const
     return LagFit(FALLBACK_THRUST_LAG, fitted, var, True, note)
 
 
+# -- what a network learned, as gain ------------------------------------------------------------------
+@dataclass(frozen=True)
+class GainChange:
+    """A network's mean slopes as a change of the z gains. The controller flies a_d = z̈* + k_p e + k_d ė − f̂
+    with e = z* − z and f̂ ∋ f_N; a slope ∂f_N/∂p_z = s_p makes −f_N ∋ −s_p z = s_p e − s_p z*, the same as
+    k_p + s_p on the error (and a feed-forward −s_p z* that does not act on it): ``dkp`` = +∂f_N/∂p_z (1/s²),
+    ``dkd`` = +∂f_N/∂v_z (1/s). Positive slopes stiffen the loop; ground effect (thrust grows as the vehicle
+    nears the ground, ∂f/∂p_z < 0) and drag (against the motion, ∂f/∂v_z < 0) soften it. Under the
+    ``neural_eso`` pathway the observer removes the slow part of f_N (f̂ = H f + (1 − H) f_N, H its low-pass at
+    ω_o), so the equivalence holds near and above the loop's bandwidth; the trainer's closed-loop prediction flies
+    PD+ESO at the changed gains to see how much of a candidate's effect it is."""
+
+    dkp: float
+    dkd: float
+
+    def gains(self, kp: float, kd: float) -> tuple[float, float]:
+        """(k_p + Δk_p, k_d + Δk_d)."""
+        return kp + self.dkp, kd + self.dkd
+
+    def text(self, kp: float | None = None, kd: float | None = None) -> str:
+        """``Δk_p +5.46 /s², Δk_d +1.58 /s`` and, with the flown gains, what they become."""
+        out = f"Δk_p {self.dkp:+.3g} /s², Δk_d {self.dkd:+.3g} /s"
+        if kp is not None and kd is not None:
+            kp2, kd2 = self.gains(kp, kd)
+            out += f" (k_p {kp:g} → {kp2:.3g}, k_d {kd:g} → {kd2:.3g})"
+        return out
+
+    def to_dict(self) -> dict:
+        return {"dkp": self.dkp, "dkd": self.dkd}
+
+
+POSITION_COLUMN, VELOCITY_COLUMN = "pos_z_m", "vel_z_mps"  # the tracked state's columns (neso.features.COLUMNS)
+
+
+def equivalent_gains(slopes: dict) -> GainChange | None:
+    """:class:`GainChange` of a network's mean physical slopes by input name (``TrainResult.slopes``, a network
+    file's ``learned["slopes"]``); None without both of the tracked state's slopes."""
+    try:
+        return GainChange(float(slopes[POSITION_COLUMN]), float(slopes[VELOCITY_COLUMN]))
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 # -- recipes --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Recipe:

@@ -102,18 +102,23 @@ class JobResult:
         pred = (f"; predicted on the recorded flight(s): z RMSE {p['rmse_active_cm']:.2f} → {p['rmse_candidate_cm']:.2f} cm "
                 f"({p['change'] * 100:+.0f} %)" if "change" in p else "")
         return (f"{self.network_id} at {self.path}: {i.get('n_samples')} {i.get('label')} samples "
-                f"({i.get('feature_set')}, {i.get('mass_kg', float('nan')):g} kg) from {len(self.job.recordings)} "
-                f"recording(s), {learned_text(i)}, certified L_N {i.get('certified_phys'):.4g} physical; "
-                f"{cert.get('text', '')}{pred}; {times}{offer}")
+                f"({i.get('feature_set')}, {i.get('mass_kg', float('nan')):g} kg; {i.get('thrust_response', '')}) "
+                f"from {len(self.job.recordings)} recording(s), {learned_text(i, cert.get('kp'), cert.get('kd'))}, "
+                f"certified L_N {i.get('certified_phys'):.4g} physical; {cert.get('text', '')}{pred}; {times}{offer}")
 
 
-def learned_text(info: dict) -> str:
-    """What a network learned, in one phrase: validation against the mean and the physical slopes."""
+def learned_text(info: dict, kp: float | None = None, kd: float | None = None) -> str:
+    """What a network learned, in one phrase: validation against the mean, the physical slopes and the slopes on
+    p_z and v_z as a change of the z gains (``kp``, ``kd``: the flown gains, to say what they become)."""
+    from neso.learning import equivalent_gains
+
     vs = info.get("val_loss_vs_mean")
     vs_text = f"val loss {vs:.3f} × the mean's" if isinstance(vs, float) and math.isfinite(vs) else "val loss unknown"
     slopes = info.get("slopes") or {}
     slope_text = ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items())
-    return f"{vs_text}; slopes ∂f_N/∂input: {slope_text or 'none'}"
+    gain = equivalent_gains(slopes)
+    gain_text = f"; as gain {gain.text(kp, kd)}" if gain is not None else ""
+    return f"{vs_text}; slopes ∂f_N/∂input: {slope_text or 'none'}{gain_text}"
 
 
 def parse_job(number: int, args: dict, config: TrainerConfig) -> Job:
@@ -247,7 +252,10 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     entry = registry.store(res.network, root=config.registry, vehicle=vehicle, label=label, parent=parent,
                            recordings=list(job.recordings), certificate=cert, predicted=result.predicted)
     result.network_id, result.path = entry.id, os.path.abspath(entry.path)
-    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set, mass_kg=ts.mass_kg)
+    lag = ts.thrust_lag
+    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set, mass_kg=ts.mass_kg,
+                       thrust_response=(f"thrust lag {lag.time_constant_s * 1e3:.1f} ms + delay {lag.delay_s * 1e3:.1f} "
+                                        f"ms, {ts.lag_source}"))
     result.timings_s["store"] = time.perf_counter() - t4
     if job.offer and offer_fn is not None:
         withheld = withheld_because(res.val_loss_vs_mean, result.predicted.get("change"), job.force_offer)

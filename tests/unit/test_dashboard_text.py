@@ -80,6 +80,9 @@ def test_the_network_panel_shows_the_candidate_and_its_prediction():
     text = network_markdown(v)
     assert "learned: val loss 0.410 × the mean's · slopes pos_z_m -2.41, pitch_rad -0.22" in text
     assert "shadow error none yet" in text  # no shadow sample yet: no made-up number
+    gained = dataclasses.replace(msg, candidate=dict(candidate, gain_change={"dkp": 5.46, "dkd": 1.58}))
+    v.ingest("network", gained, 100.5)
+    assert "as gain Δk_p +5.46 /s², Δk_d +1.58 /s" in network_markdown(v)  # what it learned, as gain
 
 
 def test_the_certificate_row_keeps_its_bound_in_one_cell():

@@ -64,6 +64,12 @@ def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_
     assert pred["rmse_active_cm"] > 0 and pred["rmse_candidate_cm"] > 0
     assert pred["change"] == pytest.approx(pred["rmse_candidate_cm"] / pred["rmse_active_cm"] - 1)
     assert entry.row()["predicted_change"] == pred["change"] and entry.info["val_loss"] >= 0
+    # what it learned, as gain: its mean slopes on p_z and v_z as a change of the flown gains
+    slopes = net.learned["slopes"]
+    assert entry.info["gain_change"] == {"dkp": slopes["pos_z_m"], "dkd": slopes["vel_z_mps"]}
+    assert entry.row()["gain_change"] == entry.info["gain_change"]
+    text = result.summary()
+    assert "as gain Δk_p" in text and "k_p 10 → " in text and "thrust lag" in text and "identified" in text
 
 
 def test_a_candidate_predicted_to_fly_worse_is_stored_but_not_offered(tmp_path):
