@@ -30,12 +30,11 @@ def learned_text(network: dict) -> str:
 
 
 def predicted_text(candidate: dict) -> str:
-    """The trainer's closed-loop prediction for a candidate, as the network panel shows it."""
-    p = candidate.get("predicted") or {}
-    if "change" not in p:
-        return "no closed-loop prediction"
-    return (f"predicted z RMSE {p.get('rmse_active_cm', math.nan):.2f} → {p.get('rmse_candidate_cm', math.nan):.2f} cm "
-            f"({p['change'] * 100:+.0f} %)")
+    """The trainer's closed-loop prediction for a candidate, as the network panel shows it: against the active
+    network, PD+ESO at the flown gains and the candidate's slopes flown as gain alone."""
+    from sim.counterfactual import prediction_text
+
+    return prediction_text(candidate.get("predicted") or {})
 
 
 def fmt(x: float, spec: str = ".3f", unit: str = "") -> str:

@@ -13,7 +13,9 @@ or ``tdr``), ``parent`` (the network it was warm-started from, ``""`` if none), 
 certificate for the z gains and observer bandwidth flown at the network's certified physical L_N
 (:meth:`neso.certificate.FlightCertificate.to_dict`: ``holds``, ``lipschitz_phys``,
 ``max_certified``, ``margin``, the gains, ``text``), and ``predicted``: the closed-loop prediction
-on the recorded flights (``rmse_active_cm``, ``rmse_candidate_cm``, ``change``; empty if none).
+on the recorded flights (``rmse_active_cm``, ``rmse_candidate_cm``, ``change``, ``rmse_pdeso_cm``,
+``change_vs_pdeso``, ``rmse_gain_only_cm``, ``gain_only``, ``split``: :func:`services.trainer.predict_closed_loop`;
+empty if none).
 """
 from __future__ import annotations
 
