@@ -36,6 +36,10 @@ def add_parser(subparsers) -> None:
                    help="--world px4: comma-separated experiments (default: nominal_landing,ood_slope,"
                         "lemniscate_near_ground)")
     p.add_argument("--px4-methods", default=None, help="--world px4: only these methods (default: every method)")
+    p.add_argument("--tuned", action="append", default=None, metavar="KIND=KP,KD,OMEGA_O",
+                   help="fly the tuned baseline at these z gains for a kind of flight (landing, lemniscate) instead of "
+                        "searching them (sim/tuning.py; both kinds needed), e.g. --tuned landing=40,12,2.5 "
+                        "--tuned lemniscate=40,12,2.5")
     p.add_argument("--rotor-aero", action="store_true",
                    help="fly every flight with the literature's speed- and thrust-dependent rotor aerodynamics "
                         "(sim.rotor_aero; off in the default world)")
@@ -46,7 +50,8 @@ def run(args) -> int:
 
     from neso.learning import RECIPES
     from sim.experiments import PaperConfig, results_json, run_paper
-    from sim.report import format_comparisons, format_labels, format_recipe_header, format_tables
+    from sim.report import (format_comparisons, format_labels, format_recipe_header, format_robustness, format_tables,
+                            format_tuning)
 
     config = replace(PaperConfig(), trials=args.trials, workers=args.workers, seed=args.seed)
     if args.recipes:
@@ -64,11 +69,19 @@ def run(args) -> int:
         config = replace(config, omega_o_rps=args.omega_o)
     if args.epochs is not None:
         config = replace(config, epochs=args.epochs)
+    if args.tuned:
+        tuned = tuned_gains(args.tuned)
+        if isinstance(tuned, str):
+            print(f"neso experiment: {tuned}")
+            return 2
+        config = replace(config, tuned=tuned)
     if args.name == "aero":
         return _run_aero(config, args)
     if args.world == "px4":
         return _run_px4(config, args)
     run_ = run_paper(config)
+    print()
+    print(format_tuning(run_.details))
     for name, rec in run_.by_recipe.items():
         print()
         print(format_recipe_header(name, rec["details"]))
@@ -76,6 +89,9 @@ def run(args) -> int:
         print(format_tables(rec["results"], rec["details"]))
         print()
         print(format_comparisons(rec["results"]))
+        if "robustness" in rec["results"]:
+            print()
+            print(format_robustness(rec["results"]))
         if "labels" in rec["details"]:
             print()
             print(format_labels(rec["details"]))
@@ -96,6 +112,25 @@ def run(args) -> int:
         for path in write_plots(run_, config, args.plots):
             print(f"plot: {path}")
     return 0
+
+
+def tuned_gains(specs: list[str]):
+    """kind → :class:`sim.tuning.ZGains` from ``KIND=KP,KD,OMEGA_O`` strings, or a one-line refusal."""
+    from sim.tuning import KINDS, ZGains
+
+    out = {}
+    for spec in specs:
+        kind, _, values = spec.partition("=")
+        try:
+            kp, kd, omega = (float(v) for v in values.split(","))
+        except ValueError:
+            return f"--tuned {spec!r}: give KIND=KP,KD,OMEGA_O, e.g. lemniscate=40,12,2.5"
+        if kind not in KINDS or not min(kp, kd, omega) > 0:
+            return f"--tuned {spec!r}: kinds are {list(KINDS)}, gains positive"
+        out[kind] = ZGains(kp, kd, omega)
+    if set(out) != set(KINDS):
+        return f"--tuned needs every kind of flight: {list(KINDS)}"
+    return out
 
 
 def _run_aero(config, args) -> int:
