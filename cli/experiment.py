@@ -172,7 +172,7 @@ def _run_px4(config, args) -> int:
     from cli.paper_px4 import Px4FlightError, run_px4_paper
     from sim.experiments import results_json, run_paper
     from sim.px4_sitl import PX4_VERSION, built_version, missing_px4
-    from sim.report import format_worlds
+    from sim.report import format_tuning, format_worlds
 
     problem = missing_px4()
     px4 = _px4_config(args)
@@ -182,6 +182,9 @@ def _run_px4(config, args) -> int:
     started = time.perf_counter()
     print(f"built-in world: the pipeline ({args.trials} trials), whose networks the PX4 world flies")
     builtin = run_paper(config)
+    print(format_tuning(builtin.details))
+    print("the PX4 world flies the tuned baseline at these gains (" + (
+        "given by --tuned" if config.tuned else "found by the search in the built-in world, not in PX4's") + ")")
     try:
         variants = run_px4_paper(builtin, config, px4)
     except Px4FlightError as exc:  # no free PX4 instance, or the TDR data flight could not fly: nothing to report
@@ -191,13 +194,15 @@ def _run_px4(config, args) -> int:
     first = next(iter(variants.values()))
     builtin_disturbance = _builtin_disturbance(builtin, config, first)
     print()
-    print(format_worlds(builtin.results, variants, builtin_disturbance))
+    print(format_worlds(builtin.results, variants, builtin_disturbance, builtin.details))
     print(f"\nbuilt-in world {builtin.seconds:.0f} s ({args.trials} trials); PX4 world {seconds - builtin.seconds:.0f} s "
           f"({px4.trials} trial(s), {sum(len(v['flights']) for v in variants.values())} flights); total {seconds:.0f} s")
     out = {"world": "px4", "px4_version": built_version() or PX4_VERSION, "experiments": first["experiments"],
            "saturation_percent": first["saturation_percent"], "trials": px4.trials, "seconds": seconds,
            "recipe": next(iter(builtin.by_recipe)), "gains": next(iter(variants)),
            "disturbance_z_std_mps2": first["disturbance_z_std_mps2"],
+           "tuned_gains": {k: g.to_dict() for k, g in builtin.tuned.gains.items()},
+           "tuned_gains_source": "given" if config.tuned else "searched in the built-in world",
            "variants": {g: {k: v[k] for k in ("kp", "kd", "experiments", "saturation_percent", "disturbance_z_std_mps2")}
                         for g, v in variants.items()},
            "builtin": dict(results_json(builtin, args.trials), disturbance_z_std_mps2=builtin_disturbance)}

@@ -273,11 +273,12 @@ def format_comparisons(results: dict) -> str:
     return "\n".join(lines)
 
 
-def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict) -> str:
+def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict, details: dict | None = None) -> str:
     """The experiments flown in both worlds side by side with the paper's figures (cm, mean ± std):
     ``builtin`` the built-in world's ``experiments``, ``variants`` gain set → the PX4 world's
     (``neso experiment paper --world px4``), with the PX4 allocator's saturation (% of airborne sensor periods)
-    and the true z disturbance's spread (std, m/s²) in each world (``builtin_disturbance`` the built-in's)."""
+    and the true z disturbance's spread (std, m/s²) in each world (``builtin_disturbance`` the built-in's);
+    ``details``: the built-in run's, whose tuned gains label the ``_tuned`` methods."""
     names = list(variants)
     head = ("method", "paper", "built-in world", *(f"PX4, gains {g}" for g in names),
             *(f"PX4 sat. % ({g})" for g in names), "f_z std built-in", *(f"f_z std PX4 ({g})" for g in names))
@@ -287,7 +288,8 @@ def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict) -> s
         for method in variants[names[0]]["experiments"][scenario]["methods"]:
             paper = PAPER_FIGURES_CM.get(scenario, {}).get(method)
             ours = builtin.get(scenario, {}).get("methods", {}).get(method)
-            rows.append((method, "–" if paper is None else f"{paper:.2f}", _cell(ours) if ours else "–",
+            rows.append((_method_label(method, scenario, details), "–" if paper is None else f"{paper:.2f}",
+                         _cell(ours) if ours else "–",
                          *(_cell(variants[g]["experiments"][scenario]["methods"][method]) for g in names),
                          *(_sat(variants[g]["saturation_percent"][scenario][method]) for g in names),
                          _sat(builtin_disturbance[scenario][method], "{:.2f}"),
