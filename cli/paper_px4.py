@@ -326,9 +326,7 @@ def run_px4_paper(builtin_run, paper, px4: Px4PaperConfig, *, log=print) -> dict
     from neso.learning import RECIPES
     from sim.experiments import LANDING_METHODS, LEMNISCATE_METHODS, tdr_network
     from sim.flights import landing_metrics, lemniscate_rmse_cm
-
-    from sim.experiments import TUNED
-    from sim.tuning import SCENARIO_KIND
+    from sim.tuning import SCENARIO_KIND, TUNED
 
     recipe_name = next(iter(builtin_run.by_recipe))
     flown = builtin_run.by_recipe[recipe_name]["flown"]

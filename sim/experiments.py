@@ -38,11 +38,10 @@ from neso.types import OMEGA_O_RPS
 from sim.flights import FlightPool, FlightTask, landing_metrics, lemniscate_rmse_cm, steady_spectrum
 from sim.runner import FlightLog
 from sim.scenarios import make_scenario
-from sim.tuning import (KINDS, SCENARIO_KIND, TuningConfig, TuningResult, ZGains, failed_conditions, robustness,
+from sim.tuning import (KINDS, SCENARIO_KIND, TUNED, TuningConfig, TuningResult, ZGains, failed_conditions, robustness,
                         robustness_tasks, tune_pd_eso)
 from sim.tuning import task as gains_task
 
-TUNED = "_tuned"  # a method's suffix: flown at the tuned gains of its experiment's kind (sim.tuning)
 LANDING_METHODS = ("pd", "pd_nn", "pd_eso", "pd_eso_tuned", "neural_eso", "neural_eso_tuned")
 OOD_METHODS = LANDING_METHODS
 LEMNISCATE_METHODS = ("pd", "pd_nn", "pd_eso", "pd_eso_tuned", "neural_observer", "neural_eso", "neural_eso_tuned",

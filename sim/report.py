@@ -2,9 +2,7 @@
 from __future__ import annotations
 
 from neso.certificate import POLICY
-from sim.tuning import SCENARIO_KIND, TUNED_GAINS
-
-TUNED = "_tuned"
+from sim.tuning import SCENARIO_KIND, TUNED, TUNED_GAINS
 
 PAPER_FIGURES_CM = {
     "nominal_landing": {"pd": 10.95, "pd_nn": 2.49, "pd_eso": 1.84, "neural_eso": 0.37},

@@ -48,6 +48,7 @@ from sim.flights import FlightPool, FlightTask, landing_metrics, lemniscate_rmse
 from sim.runner import FlightLog
 from sim.scenarios import make_scenario
 
+TUNED = "_tuned"  # a method's suffix: flown at the tuned gains of its experiment's kind
 TUNING_SEED_OFFSET = 700  # tuning seeds: seed·1000 + 700 + i (evaluation +1…, teacher +500…, TDR +900)
 #: kind of flight → the scenario its gains are tuned on
 KINDS: dict[str, str] = {"landing": "nominal_landing", "lemniscate": "lemniscate_near_ground"}
