@@ -9,7 +9,16 @@
    fly the recorded flight again with it and with the active network (the predicted change), store it
    and offer it to the estimator (gate → shadow) if it is predicted to improve;
 4. promote it in flight (hovering at the lemniscate's end point), then fly the lemniscate again while
-   the estimator's canary compares the tracking with the first run.
+   the estimator's canary compares the tracking with the first run;
+5. fly the lemniscate once more with PD+ESO (the estimator's ``eso`` pathway) at the same gains, paired with
+   the others; and, in-process (:func:`tuned_pdeso`), PD+ESO in the same scenario and seed at the paper's and at
+   the lemniscate's tuned gains (:data:`sim.tuning.TUNED_GAINS`): the baseline a learned pathway is said to pay
+   against (issue 32).
+
+The live loop flies the paper's gains (k_p 10, k_d 6, ω_o 15): the shipped networks are certified there, not at
+the tuned k_p 40, k_d 12, ω_o 2.5 (the base network's |e_z| bound is ×2.04 PD+ESO's there, over the ×2 allowed),
+and the observer bandwidth is a start-up setting that the estimator certifies at the default gains, where ω_o 2.5
+gives PD+ESO a 76 cm bound. So the tuned baseline is flown in-process beside it, in the same world.
 
 The two lemniscates are paired: before each, the simulated world restarts (the source's ``scenario``
 command: same scenario, same seed, so the same gust and mocap-noise streams) and the lemniscate is
@@ -102,10 +111,20 @@ class TdrReport:
     canary: str = ""  # the canary's last word after the second run
     lemniscate_start_t_s: list = field(default_factory=list)  # world clock at each run's first lemniscate sample
     world: str = "builtin"  # or "px4": PX4 SITL in the loop, the lemniscates not paired
+    gains: dict = field(default_factory=dict)  # the z gains flown: kp (1/s²), kd (1/s), omega_o (rad/s)
+    rmse_pdeso_cm: float = float("nan")  # PD+ESO at the same gains, the lemniscate's cycles (paired in builtin)
+    pdeso_samples: int = 0
+    tuned_pdeso: dict = field(default_factory=dict)  # tuned_pdeso(): in-process PD+ESO at the paper's and tuned gains
 
     def lines(self) -> list[str]:
+        from sim.counterfactual import prediction_text
+
         st = ", ".join(f"{k} {v:.2f}" for k, v in self.stage_s.items())
+        g = self.gains
+        against = lambda v: f"{(v / self.rmse_pdeso_cm - 1) * 100:+.0f} %" if self.rmse_pdeso_cm > 0 else "–"  # noqa: E731
         return [
+            f"z gains flown: k_p {g.get('kp', float('nan')):g}, k_d {g.get('kd', float('nan')):g}, ω_o "
+            f"{g.get('omega_o', float('nan')):g}",
             f"z RMSE, lemniscate cycles before the swap (base network): {self.rmse_before_cm:.2f} cm "
             f"({self.cycles_before_samples} samples)",
             f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm " if self.offered
@@ -120,10 +139,11 @@ class TdrReport:
             f"in shadow before the promote: candidate's RMS error against f̂ {self.shadow_error_rms_mps2:.3f} m/s², "
             f"active network's {self.active_error_rms_mps2:.3f} m/s²",
             f"recording -> promoted network, s: {st}",
-            f"predicted before the offer (the recorded flight flown again): z RMSE "
-            f"{self.predicted.get('rmse_active_cm', float('nan')):.2f} -> {self.predicted.get('rmse_candidate_cm', float('nan')):.2f} cm "
-            f"({self.predicted.get('change', float('nan')) * 100:+.0f} %); offered: {self.offered}; "
-            f"{self.certificate.get('text', 'certificate unknown')}",
+            f"predicted before the offer (the recorded flight flown again): {prediction_text(self.predicted)}; "
+            f"offered: {self.offered}; {self.certificate.get('text', 'certificate unknown')}",
+            f"PD+ESO at the same gains, the lemniscate again: {self.rmse_pdeso_cm:.2f} cm ({self.pdeso_samples} samples);"
+            f" against it the first run {against(self.rmse_before_cm)}, the second {against(self.rmse_after_cm)}",
+            tuned_pdeso_text(self.tuned_pdeso),
             f"canary: {self.canary or 'no verdict'}",
             ("paired worlds (same seed): lemniscates began at world t = " if self.world == "builtin" else
              "PX4 SITL in the loop, not paired (one world flies on: the runs also meet different gusts): lemniscates "
@@ -259,17 +279,51 @@ class _Events:
             s.undeclare()
 
 
+def tuned_pdeso(seed: int) -> dict:
+    """PD+ESO on the lemniscate near the ground, flown in-process (:func:`sim.runner.fly`) in the demo's scenario
+    with its ``seed``, at the paper's gains and at the lemniscate's tuned gains (:data:`sim.tuning.TUNED_GAINS`):
+    the z RMSE of the cycles (cm) and the gains, per gain set."""
+    from neso.types import OMEGA_O_RPS
+    from sim.experiments import PaperConfig
+    from sim.flights import run_flight
+    from sim.tuning import TUNED_GAINS, ZGains, score, task
+
+    config = PaperConfig()
+    out = {}
+    for name, gains in (("paper", ZGains.of(ControlConfig(), OMEGA_O_RPS)), ("tuned", TUNED_GAINS["lemniscate"])):
+        log = run_flight(task(config, SCENARIO, "pd_eso", {}, gains, seed))
+        out[name] = {"gains": gains.to_dict(), "rmse_cm": score(log, config, SCENARIO)}
+    return out
+
+
+def tuned_pdeso_text(t: dict) -> str:
+    """One line for :func:`tuned_pdeso`'s figures."""
+    if not t:
+        return "PD+ESO at the tuned gains: not flown"
+    p, q = t["paper"], t["tuned"]
+    g = q["gains"]
+    if p["rmse_cm"] is None or q["rmse_cm"] is None:
+        return f"PD+ESO in-process, same scenario and seed: paper gains {p['rmse_cm']}, tuned {q['rmse_cm']} (crashed)"
+    return (f"PD+ESO in-process, same scenario and seed (the live loop cannot fly the tuned ω_o): paper gains "
+            f"{p['rmse_cm']:.2f} cm, tuned (k_p {g['kp']:g}, k_d {g['kd']:g}, ω_o {g['omega_o']:g}) {q['rmse_cm']:.2f} cm "
+            f"({(q['rmse_cm'] / p['rmse_cm'] - 1) * 100:+.0f} %)")
+
+
 def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
                  fly_after: bool = True, dashboard_port: int | None = None, seed: int = 1,
                  force_offer: bool = False, world: str = "builtin") -> TdrReport:
     """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
-    ``fly_after`` False: stop once the new network flies (the bench: stage times only).
+    ``fly_after`` False: stop once the new network flies (the bench: stage times only; no PD+ESO run).
     ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard).
     ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse;
     ``world`` px4: PX4 SITL flies the world (it takes off first; the lemniscates are not paired)."""
     from runtime.bus import BusConfig, open_session
     from runtime.launcher import interrupt
 
+    from neso.types import OMEGA_O_RPS
+    from sim.tuning import ZGains
+
+    z = ZGains.of(ControlConfig(), OMEGA_O_RPS)
     rec_dir, registry = os.path.join(workdir, "recordings"), os.path.join(workdir, "registry")
     argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
             "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry, "--seed", str(seed)]
@@ -284,10 +338,14 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     session = open_session(BusConfig(connect=(hub,)))
     try:
         loop = _Loop.watch(session, log, registry, world)
+        loop.report.gains = z.to_dict()
         try:
             if on_up is not None:
                 on_up(up)
-            return loop.run(epochs=epochs, fly_after=fly_after, force_offer=force_offer)
+            report = loop.run(epochs=epochs, fly_after=fly_after, force_offer=force_offer)
+            if fly_after and world == "builtin":
+                report.tuned_pdeso = tuned_pdeso(seed)
+            return report
         finally:
             loop.close()
     finally:
@@ -303,6 +361,7 @@ class _Loop:
     probe: object
     events: "_Events"
     cmd: object
+    params: object
     log: object
     registry: str
     world: str = "builtin"
@@ -310,7 +369,7 @@ class _Loop:
 
     @classmethod
     def watch(cls, session, log, registry: str, world: str = "builtin") -> "_Loop":
-        from runtime.client import command
+        from runtime.client import command, set_params
         from runtime.probe import Probe
         from runtime.schema import Keys
 
@@ -321,7 +380,10 @@ class _Loop:
 
         def cmd(service, command_name, timeout_s=5.0, **args):
             return command(session, keys, service, command_name, args, timeout_s=timeout_s)
-        return cls(probe, events, cmd, log, registry, world, TdrReport(world=world))
+
+        def params(service, timeout_s=5.0, **values):
+            return set_params(session, keys, service, values, timeout_s)
+        return cls(probe, events, cmd, params, log, registry, world, TdrReport(world=world))
 
     def close(self) -> None:
         self.events.close()
@@ -340,6 +402,7 @@ class _Loop:
             self.log(f"candidate not offered: {done}")
             if fly_after:
                 self.fly_base_again(first_run)
+                self.fly_pdeso()
             return report
         t_offered = time.monotonic()
         swap_seq, t_promote, t_promoted = self.shadow_and_promote(force_offer)
@@ -359,7 +422,21 @@ class _Loop:
             analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report,
                     {"recording stopped": t_stop, "training": t_train, "shadow": t_offered, "promote": t_promote,
                      "promoted": t_promoted})
+            self.fly_pdeso()
         return report
+
+    def fly_pdeso(self) -> None:
+        """The lemniscate once more with PD+ESO (the estimator's ``eso`` pathway) at the same gains, in its own world
+        (paired with the others in the built-in world); the network's pathway back after it."""
+        reply = self.params("estimator", pathway="eso")
+        if not reply.ok:
+            raise RuntimeError(f"the estimator refused the eso pathway: {reply.error}")
+        self.log("flying the lemniscate with PD+ESO at the same gains")
+        run = fly_lemniscate(self.probe, self.cmd, self.new_world())
+        self.report.lemniscate_start_t_s.append(run.start_t_s)
+        self.report.rmse_pdeso_cm, self.report.pdeso_samples = z_rmse_cm(self.probe.get("reference"),
+                                                                          self.probe.get("truth"), run)
+        self.params("estimator", pathway="neural_eso")
 
     def new_world(self) -> float:
         """Where a lemniscate run's samples begin (a stamp, s), 1 s from now so that what went before (a swap just

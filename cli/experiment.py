@@ -40,6 +40,10 @@ def add_parser(subparsers) -> None:
                    help="--world px4: comma-separated experiments (default: nominal_landing,ood_slope,"
                         "lemniscate_near_ground)")
     p.add_argument("--px4-methods", default=None, help="--world px4: only these methods (default: every method)")
+    p.add_argument("--tuned", action="append", default=None, metavar="KIND=KP,KD,OMEGA_O",
+                   help="fly the tuned baseline at these z gains for a kind of flight (landing, lemniscate) instead of "
+                        "searching them (sim/tuning.py; both kinds needed), e.g. --tuned landing=40,12,2.5 "
+                        "--tuned lemniscate=40,12,2.5")
     p.add_argument("--rotor-aero", action="store_true",
                    help="fly every flight with the literature's speed- and thrust-dependent rotor aerodynamics "
                         "(sim.rotor_aero; off in the default world)")
@@ -50,7 +54,8 @@ def run(args) -> int:
 
     from neso.learning import RECIPES
     from sim.experiments import PaperConfig, results_json, run_paper
-    from sim.report import format_comparisons, format_labels, format_recipe_header, format_tables
+    from sim.report import (format_comparisons, format_labels, format_recipe_header, format_robustness, format_tables,
+                            format_tuning)
 
     config = replace(PaperConfig(), trials=args.trials, workers=args.workers, seed=args.seed)
     if args.recipes:
@@ -68,6 +73,12 @@ def run(args) -> int:
         config = replace(config, omega_o_rps=args.omega_o)
     if args.epochs is not None:
         config = replace(config, epochs=args.epochs)
+    if args.tuned:
+        tuned = tuned_gains(args.tuned)
+        if isinstance(tuned, str):
+            print(f"neso experiment: {tuned}")
+            return 2
+        config = replace(config, tuned=tuned)
     if args.name == "aero":
         return _run_aero(config, args)
     if args.name == "bias":
@@ -75,6 +86,8 @@ def run(args) -> int:
     if args.world == "px4":
         return _run_px4(config, args)
     run_ = run_paper(config)
+    print()
+    print(format_tuning(run_.details))
     for name, rec in run_.by_recipe.items():
         print()
         print(format_recipe_header(name, rec["details"]))
@@ -82,6 +95,9 @@ def run(args) -> int:
         print(format_tables(rec["results"], rec["details"]))
         print()
         print(format_comparisons(rec["results"]))
+        if "robustness" in rec["results"]:
+            print()
+            print(format_robustness(rec["results"]))
         if "labels" in rec["details"]:
             print()
             print(format_labels(rec["details"]))
@@ -102,6 +118,25 @@ def run(args) -> int:
         for path in write_plots(run_, config, args.plots):
             print(f"plot: {path}")
     return 0
+
+
+def tuned_gains(specs: list[str]):
+    """kind → :class:`sim.tuning.ZGains` from ``KIND=KP,KD,OMEGA_O`` strings, or a one-line refusal."""
+    from sim.tuning import KINDS, ZGains
+
+    out = {}
+    for spec in specs:
+        kind, _, values = spec.partition("=")
+        try:
+            kp, kd, omega = (float(v) for v in values.split(","))
+        except ValueError:
+            return f"--tuned {spec!r}: give KIND=KP,KD,OMEGA_O, e.g. lemniscate=40,12,2.5"
+        if kind not in KINDS or not min(kp, kd, omega) > 0:
+            return f"--tuned {spec!r}: kinds are {list(KINDS)}, gains positive"
+        out[kind] = ZGains(kp, kd, omega)
+    if set(out) != set(KINDS):
+        return f"--tuned needs every kind of flight: {list(KINDS)}"
+    return out
 
 
 def _run_aero(config, args) -> int:
@@ -155,7 +190,7 @@ def _run_px4(config, args) -> int:
     from cli.paper_px4 import Px4FlightError, run_px4_paper
     from sim.experiments import results_json, run_paper
     from sim.px4_sitl import missing_px4
-    from sim.report import format_worlds
+    from sim.report import format_tuning, format_worlds
 
     problem = missing_px4()
     px4 = _px4_config(args)
@@ -165,6 +200,9 @@ def _run_px4(config, args) -> int:
     started = time.perf_counter()
     print(f"built-in world: the pipeline ({args.trials} trials), whose networks the PX4 world flies")
     builtin = run_paper(config)
+    print(format_tuning(builtin.details))
+    print("the PX4 world flies the tuned baseline at these gains (" + (
+        "given by --tuned" if config.tuned else "found by the search in the built-in world, not in PX4's") + ")")
     try:
         variants = run_px4_paper(builtin, config, px4)
     except Px4FlightError as exc:  # no free PX4 instance, or the TDR data flight could not fly: nothing to report
@@ -174,13 +212,15 @@ def _run_px4(config, args) -> int:
     first = next(iter(variants.values()))
     builtin_disturbance = _builtin_disturbance(builtin, config, first)
     print()
-    print(format_worlds(builtin.results, variants, builtin_disturbance))
+    print(format_worlds(builtin.results, variants, builtin_disturbance, builtin.details))
     print(f"\nbuilt-in world {builtin.seconds:.0f} s ({args.trials} trials); PX4 world {seconds - builtin.seconds:.0f} s "
           f"({px4.trials} trial(s), {sum(len(v['flights']) for v in variants.values())} flights); total {seconds:.0f} s")
     out = {"world": "px4", "px4_version": reported_version(variants), "experiments": first["experiments"],
            "saturation_percent": first["saturation_percent"], "trials": px4.trials, "seconds": seconds,
            "recipe": next(iter(builtin.by_recipe)), "gains": next(iter(variants)),
            "disturbance_z_std_mps2": first["disturbance_z_std_mps2"],
+           "tuned_gains": {k: g.to_dict() for k, g in builtin.tuned.gains.items()},
+           "tuned_gains_source": "given" if config.tuned else "searched in the built-in world",
            "variants": {g: {k: v[k] for k in ("kp", "kd", "experiments", "saturation_percent", "disturbance_z_std_mps2")}
                         for g, v in variants.items()},
            "builtin": dict(results_json(builtin, args.trials), disturbance_z_std_mps2=builtin_disturbance)}

@@ -62,6 +62,10 @@ def _slopes_text(slopes: dict) -> str:
     return " ".join(f"{k.split('_')[0]}{v:+.2f}" for k, v in slopes.items()) or "—"
 
 
+def _gain_text(change: dict | None) -> str:
+    return "—" if not change else f"{change['dkp']:+.2f} {change['dkd']:+.2f}"
+
+
 def run(args) -> int:
     from services.registry import entries
 
@@ -74,7 +78,7 @@ def run(args) -> int:
         print(f"no networks in {args.shipped} or {args.registry}")
         return 0
     print(f"{'where':8} {'id':44} {'label':12} {'L_N norm':>8} {'certified':>9} {'val loss':>9} {'vs mean':>7} "
-          f"{'small-gain':>10}  {'slopes ∂f_N/∂input':34} parent / trained on")
+          f"{'small-gain':>10}  {'slopes ∂f_N/∂input':34} {'Δk_p Δk_d':11} parent / trained on")
     for r in rows:
         if "error" in r:
             print(f"{r['where']:8} {r['id']:44} UNREADABLE: {r['error']}")
@@ -85,11 +89,13 @@ def run(args) -> int:
         print(f"{r['where']:8} {r['id'] + mark:44} {r['label'][:12]:12} {_num(r['lipschitz_norm'], '8.3g')} "
               f"{_num(r.get('certified_phys'), '9.4g')} {_num(r['val_loss'], '9.4g')} "
               f"{_num(r.get('val_loss_vs_mean'), '7.3f')} {cert:>10}  {_slopes_text(r.get('slopes') or {}):34} "
-              f"{r['parent'] or '—'} / {source or '—'}")
+              f"{_gain_text(r.get('gain_change')):11} {r['parent'] or '—'} / {source or '—'}")
     if not any(r["where"] == "registry" for r in rows):
         print(f"(registry {args.registry}: empty — `neso train` stores there)")
     if any(r.get("flown_by_default") for r in rows):
         print("* flown by the estimator by default (--network); certified: the physical L_N ((m/s²)/unit z) the network provably meets in all its inputs; small-gain: the role certificate at the trainer's "
               "z gains for the network's certified slope in its state inputs; vs mean: validation loss over that of predicting "
-              "the mean (< 1: it learned something); slopes: mean physical ∂f_N/∂input over its training inputs")
+              "the mean (< 1: it learned something); slopes: mean physical ∂f_N/∂input over its training inputs; "
+              "Δk_p Δk_d: those on p_z and v_z as a change of the z gains (the controller subtracts f_N, e = z* − z: "
+              "+∂f_N/∂p_z is +k_p, 1/s², +∂f_N/∂v_z is +k_d, 1/s)")
     return 0

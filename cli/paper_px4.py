@@ -9,7 +9,10 @@ real MAVSDK over UDP. A flight: boot, offboard, arm (PX4's own checks), the cont
 the trajectory's start, ``hover_before_s`` of hover, then :func:`sim.runner.fly` with the method's estimator and
 the networks the built-in pipeline trained (the same recipe), scored by the same metrics
 (:mod:`sim.experiments`). TDR retrains on a neural_eso lemniscate flown in this world, as the built-in world's
-TDR does in its own.
+TDR does in its own. A method with the suffix ``_tuned`` flies at the z gains and observer bandwidth the built-in
+world's search found for its kind of flight (:mod:`sim.tuning`; x and y as the gain set flown), with the networks the
+built-in pipeline trained for them; ``neural_eso_tdr_tuned`` retrains on a lemniscate flown here at those gains.
+The gains are tuned in the built-in world, not in PX4's (a PX4 flight takes a minute of wall clock).
 
 Measured besides: rotor saturation (airborne sensor periods with a PX4 motor output within 1 % of 0 or 1,
 :class:`sim.px4_hil.AutopilotInTheLoop`) during each experiment flight, and per flight the time to arm and the
@@ -246,8 +249,8 @@ class Px4Vehicle:
         with self._lock:
             now = time.monotonic()
             self.gateway.core.on_state(meas, now, offboard=self.mode == "OFFBOARD")
-            if self.gateway.direct is not None:  # dated by its capture, as the gateway service dates the source's
-                self.gateway._forward_pose(meas, self.gateway.core.capture_s(meas, now))
+            if self.gateway.direct is not None:  # the world's measurement, captured as it is handed over
+                self.gateway._forward_pose(meas, now)
         return meas
 
     def _bring_up(self) -> None:
@@ -307,20 +310,26 @@ class Px4Flight:
 
 
 def fly_px4(scenario: str, method: str, networks: dict, trajectory, seed: int, paper, control: ControlConfig,
-            px4: Px4PaperConfig, log=print) -> Px4Flight:
-    """One experiment flight in the PX4 world (a fresh PX4 boot); the bring-up's failure is reported, not raised."""
-    from sim.experiments import disturbance_z_std_mps2
+            px4: Px4PaperConfig, log=print, tuned=None) -> Px4Flight:
+    """One experiment flight in the PX4 world (a fresh PX4 boot); the bring-up's failure is reported, not raised.
+    ``control``: the gain set flown (x, y); the z gains and ω_o are the method's (:func:`sim.experiments.method_gains`,
+    ``tuned`` the built-in world's :class:`sim.tuning.TuningResult`)."""
+    from sim.experiments import disturbance_z_std_mps2, method_gains
     from sim.runner import fly
     from sim.scenarios import make_scenario
+
+    name, gains = method_gains(method, scenario, paper, tuned)
+    control, estimator_config = gains.control(control), gains.estimator(control.dt_s)
 
     started = time.monotonic()
     vehicle = Px4Vehicle(make_scenario(scenario, **dict(paper.sim_overrides)), seed=seed)
     info: dict = {"scenario": scenario, "method": method, "seed": seed}
     flight = None
     try:
-        info.update(vehicle.prepare(trajectory.sample(0.0), control, paper.estimator_config(), px4.hover_before_s,
+        info.update(vehicle.prepare(trajectory.sample(0.0), control, estimator_config, px4.hover_before_s,
                                     px4.arm_timeout_s))
-        estimator = build_estimator(method, paper.estimator_config(), networks)
+        info["gains"] = gains.to_dict()
+        estimator = build_estimator(name, estimator_config, networks)
         flight = fly(plant=vehicle, estimator=estimator, trajectory=trajectory, seed=seed, control=control)
         airborne, saturated = vehicle.world.airborne, vehicle.world.saturated
         info.update(disturbance_z_std_mps2=disturbance_z_std_mps2(flight, paper, scenario),
@@ -344,12 +353,15 @@ def run_px4_paper(builtin_run, paper, px4: Px4PaperConfig, *, log=print) -> dict
     ``disturbance_z_std_mps2`` (experiment → method → summary over trials) and ``flights`` (every flight's
     bring-up and link figures)."""
     from neso.learning import RECIPES
-    from sim.experiments import (LANDING_METHODS, LEMNISCATE_METHODS, landing_metrics, lemniscate_rmse_cm,
-                                 tdr_network)
+    from sim.experiments import LANDING_METHODS, LEMNISCATE_METHODS, tdr_network
+    from sim.flights import landing_metrics, lemniscate_rmse_cm
+    from sim.tuning import SCENARIO_KIND, TUNED
 
     recipe_name = next(iter(builtin_run.by_recipe))
     flown = builtin_run.by_recipe[recipe_name]["flown"]
     base = {"base": flown["base"], "acceleration": flown["acceleration"]}
+    flown_tuned = builtin_run.by_recipe[recipe_name]["flown_tuned"]
+    tuned = builtin_run.tuned
     lag = builtin_run.lag
     seeds = [paper.seed * 1000 + 1 + i for i in range(px4.trials)]
     variants = {}
@@ -362,7 +374,8 @@ def run_px4_paper(builtin_run, paper, px4: Px4PaperConfig, *, log=print) -> dict
         def run(scenario, methods, trajectory, networks):
             per = {}
             for m in methods:
-                per[m] = [fly_px4(scenario, m, networks, trajectory, s, paper, control, px4, log) for s in seeds]
+                nets = networks[TUNED] if m.endswith(TUNED) else networks[""]
+                per[m] = [fly_px4(scenario, m, nets, trajectory, s, paper, control, px4, log, tuned) for s in seeds]
                 flights.extend(f.info for f in per[m])
             saturation[scenario] = {m: summarise([f.info.get("saturated_percent") for f in fl]) for m, fl in per.items()}
             disturbance[scenario] = {m: summarise([f.info.get("disturbance_z_std_mps2") for f in fl])
@@ -372,20 +385,26 @@ def run_px4_paper(builtin_run, paper, px4: Px4PaperConfig, *, log=print) -> dict
         wanted = (lambda ms: tuple(m for m in ms if px4.methods is None or m in px4.methods))
         for scenario in px4.experiments:
             if scenario in ("nominal_landing", "ood_slope"):
-                per = run(scenario, wanted(LANDING_METHODS), paper.landing, base)
+                per = run(scenario, wanted(LANDING_METHODS), paper.landing, {"": base, TUNED: flown_tuned["landing"]})
                 results[scenario] = {"metric": "steady_state_abs_z_error_cm", "methods": {
                     m: summarise([landing_metrics(f.log, paper)[0] if f.log is not None else None for f in fl])
                     for m, fl in per.items()}}
                 continue
             methods = wanted(LEMNISCATE_METHODS)
-            networks = dict(base)
-            if "neural_eso_tdr" in methods:
+            networks = {"": dict(base), TUNED: {"base": flown_tuned["lemniscate"]["base"]}}
+            for suffix in ("", TUNED):
+                if f"neural_eso_tdr{suffix}" not in methods:
+                    continue
                 tdr_traj = replace(paper.lemniscate, cycles=paper.tdr_cycles)
-                data = fly_px4(scenario, "neural_eso", base, tdr_traj, paper.seed * 1000 + 900, paper, control, px4, log)
-                flights.append(dict(data.info, purpose="tdr_data"))
+                start = networks[suffix]
+                data = fly_px4(scenario, f"neural_eso{suffix}", start, tdr_traj, paper.seed * 1000 + 900, paper,
+                               control, px4, log, tuned)
+                flights.append(dict(data.info, purpose=f"tdr_data{suffix}"))
                 if data.log is None or data.log.diverged:
                     raise Px4FlightError(f"the TDR data flight in the PX4 world failed: {data.info}")
-                networks["tdr"] = tdr_network(data.log, RECIPES[recipe_name], paper, base, lag, tdr_traj).network
+                bound = paper.base_bound(RECIPES[recipe_name], tuned.gains[SCENARIO_KIND[scenario]]) if suffix else None
+                networks[suffix]["tdr"] = tdr_network(data.log, RECIPES[recipe_name], paper, start, lag, tdr_traj,
+                                                      bound=bound).network
             per = run(scenario, methods, paper.lemniscate, networks)
             results[scenario] = {"metric": "z_rmse_cm", "methods": {
                 m: summarise([lemniscate_rmse_cm(f.log, paper) if f.log is not None else None for f in fl])

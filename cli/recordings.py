@@ -141,7 +141,7 @@ def run(args) -> int:
         print(f"{len(ts)} training pairs ({ts.label} labels) of vehicle {ts.vehicle} from {len(ts.recordings)} "
               f"recording(s); label mean {ts.y_mps2.mean():.3f} m/s², std {ts.y_mps2.std():.3f} m/s²; inputs "
               f"{ts.feature_set}, thrust lag {ts.thrust_lag.time_constant_s * 1e3:.1f} ms + delay "
-              f"{ts.thrust_lag.delay_s * 1e3:.1f} ms")
+              f"{ts.thrust_lag.delay_s * 1e3:.1f} ms ({ts.lag_source})")
         return 0
     except (RecordingError, ValueError, OSError) as exc:
         print(f"error: {exc}")

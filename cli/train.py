@@ -55,7 +55,7 @@ def add_parser(subparsers) -> None:
                    help="train here without a bus (implied by --no-offer when no trainer is on the bus)")
     g.add_argument("--network", default=None,
                    help="offline tdr: the network to warm-start from (default the estimator's, "
-                        "networks/base.safetensors)")
+                        "networks/base.safetensors, found from any folder)")
     g.add_argument("--registry", default=DEFAULT_ROOT, help="offline: where the network is stored")
     g.add_argument("--recordings-dir", default=RECORDINGS_DIR,
                    help="offline: where the newest recording is taken from when no FILE is given")
@@ -94,7 +94,7 @@ def offline(args) -> int:
     """The trainer's job in this process: no bus, no offer."""
     from neso.netfile import NetworkFileError, load_network
     from recordings.reader import RecordingError
-    from flight.estimator import DEFAULT_NETWORK
+    from flight.estimator import DEFAULT_NETWORK, shipped
     from services.trainer import TrainerConfig, parse_job, train_job
 
     if args.offer or args.promote:
@@ -106,7 +106,7 @@ def offline(args) -> int:
         job = parse_job(1, _train_args(args), config)
         active = None
         if job.mode == "tdr":
-            path = args.network or DEFAULT_NETWORK
+            path = shipped(args.network or DEFAULT_NETWORK)  # the project's own from any folder
             active = {"id": load_network(path).metadata.get("id", os.path.basename(path)), "path": path}
             print(f"neso train: offline, tdr warm-started from {path}", flush=True)
         result = train_job(job, config, args.vehicle, active)

@@ -18,20 +18,23 @@ def shadow_text(rms_mps2: float) -> str:
 
 def learned_text(network: dict) -> str:
     """What a network learned, as the trainer recorded it: validation loss against predicting the mean,
-    and the mean physical slope per input."""
+    the mean physical slope per input, and those on p_z and v_z as a change of the z gains."""
+    from neso.learning import GainChange
+
     vs = network.get("val_loss_vs_mean")
     slopes = network.get("slopes") or {}
+    change = network.get("gain_change")
     vs_part = f"val loss {vs:.3f} × the mean's" if isinstance(vs, (int, float)) else "val loss vs mean not recorded"
-    return vs_part + (" · slopes " + ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items()) if slopes else "")
+    return (vs_part + (" · slopes " + ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items()) if slopes else "")
+            + (f" · as gain {GainChange(change['dkp'], change['dkd']).text()}" if change else ""))
 
 
 def predicted_text(candidate: dict) -> str:
-    """The trainer's closed-loop prediction for a candidate, as the network panel shows it."""
-    p = candidate.get("predicted") or {}
-    if "change" not in p:
-        return "no closed-loop prediction"
-    return (f"predicted z RMSE {p.get('rmse_active_cm', math.nan):.2f} → {p.get('rmse_candidate_cm', math.nan):.2f} cm "
-            f"({p['change'] * 100:+.0f} %)")
+    """The trainer's closed-loop prediction for a candidate, as the network panel shows it: against the active
+    network, PD+ESO at the flown gains and the candidate's slopes flown as gain alone."""
+    from sim.counterfactual import prediction_text
+
+    return prediction_text(candidate.get("predicted") or {})
 
 
 def fmt(x: float, spec: str = ".3f", unit: str = "") -> str:

@@ -35,7 +35,8 @@ when refused, and a refusal leaves the active network flying):
 - ``promote [force]``: the candidate becomes the active network at the next sample; Δf̂ absorbs
   the step so f̂ is continuous (:meth:`neso.estimator.NeuralESO.set_network`). The active one
   becomes ``previous``. Refused without ``force: true`` when its certificate fails or when the
-  trainer's closed-loop prediction (``offer``'s ``predicted``) says it flies worse.
+  trainer's closed-loop prediction (``offer``'s ``predicted``) says it flies worse than the active network
+  or no better than PD+ESO at the flown gains.
 - the **canary** (:class:`flight.hotswap.Canary`): after a promotion the z tracking error (state
   against the controller's reference, same ``seq``) is compared with the error before it on the
   same mission segment; worse by more than ``--canary-margin`` over ``--canary-window`` samples
@@ -310,12 +311,16 @@ class EstimatorCore:
             return False, "no candidate to promote (offer one first)"
         net, info = self.candidate
         cert = self.certificate_of(net)
-        change = (info.get("predicted") or {}).get("change")
+        predicted = info.get("predicted") or {}
+        change, vs_pdeso = predicted.get("change"), predicted.get("change_vs_pdeso")
+        worse = isinstance(change, (int, float)) and change >= 0
+        no_better = isinstance(vs_pdeso, (int, float)) and vs_pdeso >= 0
         if not force:
             if not cert.holds:
                 return False, f"candidate {info['id']}: {cert.text()} (promote with force=true to fly it anyway)"
-            if isinstance(change, (int, float)) and change >= 0:
-                return False, (f"candidate {info['id']} is predicted to fly worse{_predicted_text(info['predicted'])}"
+            if worse or no_better:
+                what = "to fly worse" if worse else "no better than PD+ESO at the flown gains"
+                return False, (f"candidate {info['id']} is predicted {what}{_predicted_text(predicted)}"
                                " (promote with force=true to fly it anyway)")
         shadow = self.shadow.rms()
         self.previous = (self.estimator.network, self.active_info)
@@ -326,7 +331,7 @@ class EstimatorCore:
         self.changes += 1
         self.canary.arm()
         self.canary_last = f"armed at the promotion of {info['id']}"
-        forced = " by force" if force and (not cert.holds or (isinstance(change, (int, float)) and change >= 0)) else ""
+        forced = " by force" if force and (not cert.holds or worse or no_better) else ""
         shadow_text = f"{shadow:.4g} m/s²" if shadow >= 0 else "none (no shadow samples yet)"
         return True, (f"promoted {info['id']}{forced} (shadow error {shadow_text}; {cert.text()}); previous "
                       f"{self.previous[1]['id']}; the canary watches the next {self.config.canary.window_samples} "
@@ -458,10 +463,11 @@ def bound_phys(net: LipschitzMLP) -> float:
 
 
 def _predicted_text(predicted: dict | None) -> str:
+    from sim.counterfactual import prediction_text
+
     if not predicted or "change" not in predicted:
         return ""
-    return (f"; predicted z RMSE on the recorded flight {predicted.get('rmse_active_cm', float('nan')):.2f} → "
-            f"{predicted.get('rmse_candidate_cm', float('nan')):.2f} cm ({predicted['change'] * 100:+.0f} %)")
+    return f"; on the recorded flight {prediction_text(predicted)}"
 
 
 def _describe(net: LipschitzMLP | None, source: str, path: str, net_id: str | None = None) -> dict:

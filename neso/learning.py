@@ -38,6 +38,12 @@ LABEL_PATHWAYS = {"eso": ("eso",), "tdr": ("neural_eso",), "applied": None}
 #: truth (docs/method.md "Labels"): 3 Hz on the position beat 2 and 5 Hz and every cutoff on the velocity.
 SMOOTHING_CUTOFF_HZ = 3.0
 IDENTIFICATION_CUTOFF_HZ = 5.0  # identify_thrust_lag needs the band where the lag shows
+#: identify_thrust_lag's grid: τ 0–150 ms and d 0–60 ms in 2.5 ms steps (s)
+LAG_TIME_CONSTANTS_S = np.arange(0.0, 0.1501, 0.0025)
+LAG_DELAYS_S = np.arange(0.0, 0.0601, 0.0025)
+#: What is flown when the fit sits at the top of its grid (the fit drifted, it measured no lag): the controller's own
+#: nominal model, no lag and no delay — the assumption every observer and label here already makes without one.
+FALLBACK_THRUST_LAG = ThrustLag()
 
 
 @dataclass(frozen=True)
@@ -145,23 +151,38 @@ def labels(series: FlightSeries, kind: str, lag: ThrustLag = ThrustLag()) -> np.
     raise ValueError(f"label must be one of {LABELS}, got {kind!r}")
 
 
+@dataclass(frozen=True)
+class LagFit:
+    """What :func:`identify_thrust_lag` found: ``lag`` the thrust response to fly and label with; ``fitted`` the grid's
+    best; ``variance_mps4`` its residual variance ((m/s²)²); ``at_edge``: the fit sits at the top of the grid in τ or d,
+    so it measured no lag (it drifted there) and ``lag`` is :data:`FALLBACK_THRUST_LAG`; ``note``: that, in words."""
+
+    lag: ThrustLag
+    fitted: ThrustLag
+    variance_mps4: float
+    at_edge: bool = False
+    note: str = ""
+
+
 def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, *, time_constants_s: np.ndarray | None = None,
-                        delays_s: np.ndarray | None = None) -> tuple[ThrustLag, float]:
+                        delays_s: np.ndarray | None = None) -> LagFit:
     """The first-order lag and delay from thrust command to measured acceleration, by grid search.
 
     For each candidate the residual ``a − T_applied·(R e₃)_z/m`` is made; what a wrong lag leaves in
     it is the difference between the true and the modelled applied thrust, a high-pass image of the
     command that adds variance. The candidate with the least residual variance (flights' means
-    removed) is returned with that variance ((m/s²)²). Defaults: τ 0–150 ms and d 0–60 ms in 2.5 ms
-    steps. The lag shows above its corner (3.5 Hz for 45 ms), where the position's second difference
-    is noise: the acceleration here comes from the source's velocity through a 5 Hz zero-phase
-    low-pass (thrust likewise); below ~3 Hz the fit drifts to the longest lag on the grid, which
-    mimics the smoothing and the closed loop's own thrust–disturbance correlation (measured). Each
-    flight's thrust is taken for its own ``mass_kg``.
+    removed) is the fit. Defaults: :data:`LAG_TIME_CONSTANTS_S`, :data:`LAG_DELAYS_S`. The lag shows above
+    its corner (3.5 Hz for 45 ms), where the position's second difference is noise: the acceleration here
+    comes from the source's velocity through a 5 Hz zero-phase low-pass (thrust likewise); below ~3 Hz the
+    fit drifts to the longest lag on the grid, which mimics the smoothing and the closed loop's own
+    thrust–disturbance correlation (measured; issue 32: 150 ms on two gusty hovers of a vehicle whose motors
+    lag 5 ms, and predictions of +878 % from it). A fit at the top of the grid in τ or d is therefore not
+    used: :attr:`LagFit.lag` is then :data:`FALLBACK_THRUST_LAG` and the fit says so. Each flight's thrust is
+    taken for its own ``mass_kg``.
     """
     flights = [series] if isinstance(series, FlightSeries) else list(series)
-    taus = np.arange(0.0, 0.1501, 0.0025) if time_constants_s is None else np.asarray(time_constants_s)
-    delays = np.arange(0.0, 0.0601, 0.0025) if delays_s is None else np.asarray(delays_s)
+    taus = LAG_TIME_CONSTANTS_S if time_constants_s is None else np.asarray(time_constants_s)
+    delays = LAG_DELAYS_S if delays_s is None else np.asarray(delays_s)
     accs = [np.gradient(zero_phase(s.vel_enu_mps[:, 2], s.dt_s, IDENTIFICATION_CUTOFF_HZ), s.dt_s) for s in flights]
     best = (ThrustLag(), np.inf)
     for tau in taus:
@@ -176,7 +197,60 @@ def identify_thrust_lag(series: list[FlightSeries] | FlightSeries, *, time_const
             var /= sum(len(s) for s in flights)
             if var < best[1]:
                 best = (lag, var)
-    return best
+    fitted, var = best
+    top_tau, top_delay = len(taus) > 1 and fitted.time_constant_s >= taus.max(), len(delays) > 1 and \
+        fitted.delay_s >= delays.max()
+    if not (top_tau or top_delay):
+        return LagFit(fitted, fitted, var)
+    edge = " and ".join(n for n, hit in ((f"τ {fitted.time_constant_s * 1e3:.1f} ms", top_tau),
+                                         (f"delay {fitted.delay_s * 1e3:.1f} ms", top_delay)) if hit)
+    note = (f"the thrust lag fit sits at the top of its grid ({edge}): it measured no lag; flying and labelling "
+            f"with the fallback instead (lag {FALLBACK_THRUST_LAG.time_constant_s * 1e3:g} ms, delay "
+            f"{FALLBACK_THRUST_LAG.delay_s * 1e3:g} ms: the controller's nominal model)")
+    return LagFit(FALLBACK_THRUST_LAG, fitted, var, True, note)
+
+
+# -- what a network learned, as gain ------------------------------------------------------------------
+@dataclass(frozen=True)
+class GainChange:
+    """A network's mean slopes as a change of the z gains. The controller flies a_d = z̈* + k_p e + k_d ė − f̂
+    with e = z* − z and f̂ ∋ f_N; a slope ∂f_N/∂p_z = s_p makes −f_N ∋ −s_p z = s_p e − s_p z*, the same as
+    k_p + s_p on the error (and a feed-forward −s_p z* that does not act on it): ``dkp`` = +∂f_N/∂p_z (1/s²),
+    ``dkd`` = +∂f_N/∂v_z (1/s). Positive slopes stiffen the loop; ground effect (thrust grows as the vehicle
+    nears the ground, ∂f/∂p_z < 0) and drag (against the motion, ∂f/∂v_z < 0) soften it. Under the
+    ``neural_eso`` pathway the observer removes the slow part of f_N (f̂ = H f + (1 − H) f_N, H its low-pass at
+    ω_o), so the equivalence holds near and above the loop's bandwidth; the trainer's closed-loop prediction flies
+    PD+ESO at the changed gains to see how much of a candidate's effect it is."""
+
+    dkp: float
+    dkd: float
+
+    def gains(self, kp: float, kd: float) -> tuple[float, float]:
+        """(k_p + Δk_p, k_d + Δk_d)."""
+        return kp + self.dkp, kd + self.dkd
+
+    def text(self, kp: float | None = None, kd: float | None = None) -> str:
+        """``Δk_p +5.46 /s², Δk_d +1.58 /s`` and, with the flown gains, what they become."""
+        out = f"Δk_p {self.dkp:+.3g} /s², Δk_d {self.dkd:+.3g} /s"
+        if kp is not None and kd is not None:
+            kp2, kd2 = self.gains(kp, kd)
+            out += f" (k_p {kp:g} → {kp2:.3g}, k_d {kd:g} → {kd2:.3g})"
+        return out
+
+    def to_dict(self) -> dict:
+        return {"dkp": self.dkp, "dkd": self.dkd}
+
+
+POSITION_COLUMN, VELOCITY_COLUMN = "pos_z_m", "vel_z_mps"  # the tracked state's columns (neso.features.COLUMNS)
+
+
+def equivalent_gains(slopes: dict) -> GainChange | None:
+    """:class:`GainChange` of a network's mean physical slopes by input name (``TrainResult.slopes``, a network
+    file's ``learned["slopes"]``); None without both of the tracked state's slopes."""
+    try:
+        return GainChange(float(slopes[POSITION_COLUMN]), float(slopes[VELOCITY_COLUMN]))
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 # -- recipes --------------------------------------------------------------------------------------

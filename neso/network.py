@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from neso.features import LEGACY_FEATURE_SET, FeatureSet, FeatureSetError, ThrustLag, feature_set
+from neso.learning import equivalent_gains
 
 
 def _readonly_f64(a, name: str, ndim: int) -> np.ndarray:
@@ -168,7 +169,10 @@ class LipschitzMLP:
     @property
     def learned(self) -> dict:
         """What training recorded about what it learned, JSON-safe: ``val_loss_vs_mean`` (validation MSE over
-        that of predicting the mean; None if not recorded) and ``slopes`` (mean physical ∂h/∂input by input name)."""
+        that of predicting the mean; None if not recorded), ``slopes`` (mean physical ∂h/∂input by input name) and
+        ``gain_change``: the slopes on p_z and v_z as a change of the z gains (``dkp`` 1/s², ``dkd`` 1/s;
+        :func:`neso.learning.equivalent_gains`; None without them)."""
+
         try:
             slopes = {str(k): float(v) for k, v in json.loads(self.metadata.get("slopes", "{}")).items()}
         except (ValueError, AttributeError):
@@ -177,8 +181,10 @@ class LipschitzMLP:
             vs = float(self.metadata.get("val_loss_vs_mean", "nan"))
         except ValueError:
             vs = float("nan")
-        return {"val_loss_vs_mean": vs if np.isfinite(vs) else None,
-                "slopes": {k: v for k, v in slopes.items() if np.isfinite(v)}}
+        slopes = {k: v for k, v in slopes.items() if np.isfinite(v)}
+        change = equivalent_gains(slopes)
+        return {"val_loss_vs_mean": vs if np.isfinite(vs) else None, "slopes": slopes,
+                "gain_change": None if change is None else change.to_dict()}
 
     @property
     def layer_sizes(self) -> tuple[int, ...]:

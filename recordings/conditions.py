@@ -68,4 +68,4 @@ def _conditions(series, run, ref, ref_rows, yaw_by_seq, seq, lag, dt) -> Recorde
         ref_yaw_rad=np.asarray(ref["yaw_rad"], dtype=float)[ref_rows],
         disturbance_enu_mps2=acc - nominal,
         pos0_enu_m=series.pos_enu_m[run[0]], vel0_enu_mps=vel[0], thrust0_n=float(series.thrust_prev_n[run[0]]),
-        lag=lag, dt_s=dt, mass_kg=series.mass_kg)
+        lag=lag, dt_s=dt, mass_kg=series.mass_kg, pos_enu_m=series.pos_enu_m[run])

@@ -250,7 +250,8 @@ def load_training_set(paths, label: str, *, feature_set_key: str = DEFAULT_FEATU
     lag_source = "given"
     if lag is None:
         try:
-            lag, lag_source = identify_thrust_lag(_airborne_series(recs))[0], "identified"
+            fit = identify_thrust_lag(_airborne_series(recs))
+            lag, lag_source = fit.lag, (fit.note if fit.at_edge else "identified")
         except RecordingError as exc:
             if label == "applied" or fset.uses_applied_thrust:
                 raise

@@ -7,11 +7,15 @@ or ``tdr``), ``parent`` (the network it was warm-started from, ``""`` if none), 
 (the ``.rrd`` files it was trained on), ``created`` (UTC, ISO 8601), ``lipschitz_norm`` /
 ``lipschitz_phys`` (the bound, normalised and (m/s²) per unit z), ``certified_norm`` /
 ``certified_phys`` (exact SVD product, same units), ``val_loss`` (z-scored MSE) and
-``val_loss_physical`` ((m/s²)²), ``feature_set``, ``bound_units``, ``certificate``: the stability
+``val_loss_physical`` ((m/s²)²), ``val_loss_vs_mean``, ``slopes`` (mean physical ∂f_N/∂input) and
+``gain_change`` (those on p_z and v_z as a change of the z gains, ``dkp``/``dkd``:
+:func:`neso.learning.equivalent_gains`), ``feature_set``, ``bound_units``, ``certificate``: the stability
 certificate for the z gains and observer bandwidth flown at the network's certified physical L_N
 (:meth:`neso.certificate.FlightCertificate.to_dict`: ``holds``, ``lipschitz_phys``,
 ``max_certified``, ``margin``, the gains, ``text``), and ``predicted``: the closed-loop prediction
-on the recorded flights (``rmse_active_cm``, ``rmse_candidate_cm``, ``change``; empty if none).
+on the recorded flights (``rmse_active_cm``, ``rmse_candidate_cm``, ``change``, ``rmse_pdeso_cm``,
+``change_vs_pdeso``, ``rmse_gain_only_cm``, ``gain_only``, ``split``: :func:`services.trainer.predict_closed_loop`;
+empty if none).
 """
 from __future__ import annotations
 
@@ -45,7 +49,7 @@ class Entry:
                 "created": i.get("created", ""), "lipschitz_norm": i.get("lipschitz_norm"),
                 "lipschitz_phys": i.get("lipschitz_phys"), "certified_phys": i.get("certified_phys"),
                 "val_loss": i.get("val_loss"), "val_loss_vs_mean": i.get("val_loss_vs_mean"),
-                "slopes": i.get("slopes") or {},
+                "slopes": i.get("slopes") or {}, "gain_change": i.get("gain_change"),
                 "certificate_holds": (i.get("certificate") or {}).get("holds"),
                 "feature_set": i.get("feature_set", ""), "predicted_change": (i.get("predicted") or {}).get("change"),
                 "recordings": i.get("recordings", []), "path": self.path}

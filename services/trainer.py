@@ -19,10 +19,13 @@ and commands while it trains. Commands on ``neso/<v>/cmd/trainer``:
 Before it offers, the trainer flies the recorded flights again in closed loop
 (:mod:`sim.counterfactual`: the recorded reference, the disturbance reconstructed from the
 recording injected, the vehicle's recorded mass and the thrust delay and lag identified on the same
-recordings, whatever the label) with the active network and with the candidate on the same conditions;
-the predicted z RMSE change goes with the offer, into the registry and onto the dashboard. A
-candidate predicted to fly worse, or whose validation loss is not below that of predicting the mean (it learned
-nothing), is stored but not offered unless ``force_offer``.
+recordings, whatever the label) with the active network, with the candidate, with PD+ESO at the flown
+gains and with PD+ESO at the flown gains plus the candidate's slopes as gain
+(:func:`neso.learning.equivalent_gains`), all on the same conditions: the predicted z RMSE change, and how
+much of the candidate's gain over PD+ESO its gain alone gives and how much is learned disturbance, go with
+the offer, into the registry and onto the dashboard. A candidate predicted to fly worse than the active
+network, or no better than PD+ESO at the flown gains, or whose validation loss is not below that of predicting
+the mean (it learned nothing), is stored but not offered unless ``force_offer``.
 - ``status``: what the worker is doing and the last result.
 
 A retried ``train`` is queued once (the node answers a repeated request id with the first answer).
@@ -98,22 +101,27 @@ class JobResult:
         times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings_s.items())
         offer = "" if self.offer is None else (f"; offer {'accepted' if self.offer[0] else 'REFUSED'}: "
                                                f"{self.offer[1]}")
-        p = self.predicted
-        pred = (f"; predicted on the recorded flight(s): z RMSE {p['rmse_active_cm']:.2f} → {p['rmse_candidate_cm']:.2f} cm "
-                f"({p['change'] * 100:+.0f} %)" if "change" in p else "")
+        from sim.counterfactual import prediction_text
+
+        pred = f"; on the recorded flight(s): {prediction_text(self.predicted)}" if "change" in self.predicted else ""
         return (f"{self.network_id} at {self.path}: {i.get('n_samples')} {i.get('label')} samples "
-                f"({i.get('feature_set')}, {i.get('mass_kg', float('nan')):g} kg) from {len(self.job.recordings)} "
-                f"recording(s), {learned_text(i)}, certified L_N {i.get('certified_phys'):.4g} physical; "
-                f"{cert.get('text', '')}{pred}; {times}{offer}")
+                f"({i.get('feature_set')}, {i.get('mass_kg', float('nan')):g} kg; {i.get('thrust_response', '')}) "
+                f"from {len(self.job.recordings)} recording(s), {learned_text(i, cert.get('kp'), cert.get('kd'))}, "
+                f"certified L_N {i.get('certified_phys'):.4g} physical; {cert.get('text', '')}{pred}; {times}{offer}")
 
 
-def learned_text(info: dict) -> str:
-    """What a network learned, in one phrase: validation against the mean and the physical slopes."""
+def learned_text(info: dict, kp: float | None = None, kd: float | None = None) -> str:
+    """What a network learned, in one phrase: validation against the mean, the physical slopes and the slopes on
+    p_z and v_z as a change of the z gains (``kp``, ``kd``: the flown gains, to say what they become)."""
+    from neso.learning import equivalent_gains
+
     vs = info.get("val_loss_vs_mean")
     vs_text = f"val loss {vs:.3f} × the mean's" if isinstance(vs, float) and math.isfinite(vs) else "val loss unknown"
     slopes = info.get("slopes") or {}
     slope_text = ", ".join(f"{k} {v:+.3g}" for k, v in slopes.items())
-    return f"{vs_text}; slopes ∂f_N/∂input: {slope_text or 'none'}"
+    gain = equivalent_gains(slopes)
+    gain_text = f"; as gain {gain.text(kp, kd)}" if gain is not None else ""
+    return f"{vs_text}; slopes ∂f_N/∂input: {slope_text or 'none'}{gain_text}"
 
 
 def parse_job(number: int, args: dict, config: TrainerConfig) -> Job:
@@ -248,10 +256,13 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     entry = registry.store(res.network, root=config.registry, vehicle=vehicle, label=label, parent=parent,
                            recordings=list(job.recordings), certificate=cert, predicted=result.predicted)
     result.network_id, result.path = entry.id, os.path.abspath(entry.path)
-    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set, mass_kg=ts.mass_kg)
+    lag = ts.thrust_lag
+    result.info = dict(entry.info, n_samples=len(ts.y_mps2), feature_set=ts.feature_set, mass_kg=ts.mass_kg,
+                       thrust_response=(f"thrust lag {lag.time_constant_s * 1e3:.1f} ms + delay {lag.delay_s * 1e3:.1f} "
+                                        f"ms, {ts.lag_source}"))
     result.timings_s["store"] = time.perf_counter() - t4
     if job.offer and offer_fn is not None:
-        withheld = withheld_because(res.val_loss_vs_mean, result.predicted.get("change"), job.force_offer)
+        withheld = withheld_because(res.val_loss_vs_mean, result.predicted, job.force_offer)
         if withheld:
             result.offer = (False, withheld)
         else:
@@ -261,10 +272,11 @@ def train_job(job: Job, config: TrainerConfig, vehicle: str, active: dict | None
     return result
 
 
-def withheld_because(val_loss_vs_mean: float, change, force_offer: bool) -> str:
+def withheld_because(val_loss_vs_mean: float, predicted: dict, force_offer: bool) -> str:
     """Why a candidate is not offered (empty: offer it). One whose validation loss is not below that of
-    predicting the mean learned nothing, and one predicted to fly worse: neither is offered unless ``force_offer``
-    (an operator trying the swap itself; the estimator's certificate gate and the canary still decide). One whose
+    predicting the mean learned nothing; one predicted (``predicted``: :func:`predict_closed_loop`'s) to fly worse
+    than the active network, or no better than PD+ESO at the flown gains: none is offered unless ``force_offer`` (an
+    operator trying the swap itself; the estimator's certificate gate and the canary still decide). One whose
     validation loss is not finite (training diverged) never is."""
     if not math.isfinite(val_loss_vs_mean):
         return f"not offered: its validation loss is {val_loss_vs_mean} (training diverged); force_offer does not change that"
@@ -273,31 +285,66 @@ def withheld_because(val_loss_vs_mean: float, change, force_offer: bool) -> str:
     if not val_loss_vs_mean < 1.0:
         return (f"not offered: its validation loss is {val_loss_vs_mean:.3f} × that of predicting the mean (it learned "
                 "nothing the observer does not already remove); train with force_offer=true to offer it anyway")
+    change, vs_pdeso = predicted.get("change"), predicted.get("change_vs_pdeso")
     if isinstance(change, float) and change >= 0:
         return (f"not offered: predicted to fly worse ({change * 100:+.0f} % z RMSE on the recorded flight); train with "
                 "force_offer=true to offer it anyway")
+    if isinstance(vs_pdeso, float) and vs_pdeso >= 0:
+        return (f"not offered: predicted no better than PD+ESO at the flown gains ({vs_pdeso * 100:+.0f} % z RMSE on "
+                "the recorded flight: not an improvement); train with force_offer=true to offer it anyway")
     return ""
 
 
 def predict_closed_loop(recordings, active_net, candidate_net, lag, kp: float, kd: float, omega_o: float) -> dict:
-    """Fly the recorded flights again with the active and the candidate network (:mod:`sim.counterfactual`)."""
+    """Fly the recorded flights again (:mod:`sim.counterfactual`) with the active network, the candidate, PD+ESO at the
+    flown z gains ``kp``, ``kd`` and ``omega_o``, and PD+ESO with the candidate's slopes added to the gains
+    (:func:`neso.learning.equivalent_gains`). Besides :func:`sim.counterfactual.predict_change`'s figures:
+    ``rmse_pdeso_cm``, ``change_vs_pdeso`` (candidate/PD+ESO − 1 on the recorded flight's level), ``gain_only``
+    (the gains flown for it, or a ``note`` why none), ``rmse_gain_only_cm`` and, when the candidate beats PD+ESO,
+    ``split``: of its gain over PD+ESO (``total_cm``) what its gain alone gives (``gain_cm``) and the rest
+    (``learned_cm``), cm on the recorded flight's level."""
     from dataclasses import replace
 
     from neso.control import ControlConfig
     from neso.eso import EsoConfig
     from neso.estimator import NeuralESO, NeuralEsoConfig
+    from neso.learning import equivalent_gains
     from recordings.conditions import recorded_conditions
     from recordings.reader import read_recording
-    from sim.counterfactual import predict_change
+    from sim.counterfactual import Variant, on_flight_cm, predict_change
 
     conditions = [c for path in recordings for c in recorded_conditions(read_recording(path), lag)]  # recorded masses
     if not conditions:
         return {}
-    control = ControlConfig()
-    control = replace(control, kp=(*control.kp[:2], kp), kd=(*control.kd[:2], kd), dt_s=conditions[0].dt_s)
-    est_cfg = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=omega_o, dt_s=conditions[0].dt_s))
-    return predict_change(conditions, lambda net: NeuralESO(est_cfg, net),
-                          {"active": active_net, "candidate": candidate_net}, control)
+    dt = conditions[0].dt_s
+
+    def gains(kp_z: float, kd_z: float) -> ControlConfig:
+        base = ControlConfig()
+        return replace(base, kp=(*base.kp[:2], kp_z), kd=(*base.kd[:2], kd_z), dt_s=dt)
+
+    est_cfg = NeuralEsoConfig(eso=EsoConfig(omega_o_rps=omega_o, dt_s=dt))
+    pdeso = replace(est_cfg, pathway="eso")
+    variants = {"active": Variant(lambda: NeuralESO(est_cfg, active_net), gains(kp, kd)),
+                "candidate": Variant(lambda: NeuralESO(est_cfg, candidate_net), gains(kp, kd)),
+                "pdeso": Variant(lambda: NeuralESO(pdeso), gains(kp, kd))}
+    change = equivalent_gains(candidate_net.learned["slopes"])
+    gain_only: dict = {"note": "its slopes on p_z and v_z are not recorded"} if change is None else {}
+    if change is not None:
+        kp2, kd2 = change.gains(kp, kd)
+        gain_only = dict(change.to_dict(), kp=kp2, kd=kd2)
+        if kp2 > 0 and kd2 > 0:
+            variants["gain_only"] = Variant(lambda: NeuralESO(pdeso), gains(kp2, kd2))
+        else:
+            gain_only["note"] = f"its slopes as gain make k_p {kp2:.3g}, k_d {kd2:.3g}: not a PD controller to fly"
+    out = predict_change(conditions, variants)
+    out["gain_only"] = gain_only
+    cand, pd = on_flight_cm(out, "candidate"), on_flight_cm(out, "pdeso")
+    if pd > 0 and math.isfinite(pd):
+        out["change_vs_pdeso"] = cand / pd - 1.0
+    g = on_flight_cm(out, "gain_only") if "rmse_gain_only_cm" in out else None
+    if g is not None and math.isfinite(g) and cand < pd:
+        out["split"] = {"total_cm": pd - cand, "gain_cm": pd - g, "learned_cm": g - cand}
+    return out
 
 
 # -- bus adapter ------------------------------------------------------------------------------

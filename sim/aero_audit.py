@@ -29,7 +29,8 @@ import numpy as np
 
 from neso.features import ThrustLag, applied_thrust_series
 
-from sim.experiments import FlightTask, PaperConfig, _Pool
+from sim.experiments import PaperConfig
+from sim.flights import FlightPool, FlightTask
 from sim.ground_effect import NoGroundEffect
 from sim.rotor_aero import CheesemanBennettWashout, FaesslerTranslationalLift, RotorSpeedDrag, ThrustProportionalDrag
 from sim.runner import FlightLog
@@ -155,7 +156,7 @@ def _fly_with_branches(task: _BranchTask) -> tuple[FlightLog, np.ndarray]:
 
 
 def audit_effects(config: PaperConfig = PaperConfig(), *, effects=EFFECTS,
-                  world: tuple[tuple[str, object], ...] = (), pool: _Pool | None = None) -> dict:
+                  world: tuple[tuple[str, object], ...] = (), pool: FlightPool | None = None) -> dict:
     """Each effect's contribution to f_true_z on the lemniscate flown in the world
     ``make_scenario`` gives with ``world`` applied.
 
@@ -167,7 +168,7 @@ def audit_effects(config: PaperConfig = PaperConfig(), *, effects=EFFECTS,
     base_cfg = make_scenario(SCENARIO, **dict(world))
     changes = [effect.change(base_cfg) for effect in effects]
     variants = tuple(replace(base_cfg, **c) for c in changes)
-    own = pool or _Pool(config.workers)
+    own = pool or FlightPool(config.workers)
     try:
         branched = own.map([_BranchTask(t, variants) for t in _tasks(config, world, seeds)], _fly_with_branches)
         closed = own.map_groups([_tasks(config, tuple({**dict(world), **c}.items()), seeds) for c in changes])
@@ -317,7 +318,7 @@ def run_aero(config: PaperConfig = PaperConfig(), *, log=print) -> dict:
         "with the literature's rotor aero": tuple({**dict(world), **dict(LITERATURE_ROTOR_AERO)}.items()),
         "without rotor thrust limits (context)": tuple({**dict(world), "inner_loop": lifted}.items()),
     }
-    pool = _Pool(config.workers)
+    pool = FlightPool(config.workers)
     try:
         log("auditing effects on the lemniscate (pd_eso, same seeds, each effect off / on)")
         audit = audit_effects(config, world=world, pool=pool)

@@ -1,6 +1,9 @@
 """Text tables shaped like the paper's (mean ± std over trials, cm), from the results dict."""
 from __future__ import annotations
 
+from neso.certificate import POLICY
+from sim.tuning import SCENARIO_KIND, TUNED, TUNED_GAINS
+
 PAPER_FIGURES_CM = {
     "nominal_landing": {"pd": 10.95, "pd_nn": 2.49, "pd_eso": 1.84, "neural_eso": 0.37},
     "ood_slope": {"pd_nn": 3.74, "pd_eso": 0.66, "neural_eso": 1.53},
@@ -36,17 +39,22 @@ def format_recipe_header(name: str, details: dict) -> str:
     nets = details.get("networks", {})
     base = nets.get("base_x1", {})
     tdr = nets.get("tdr", {})
+    tuned = nets.get("tdr_tuned", {})
     cert = lambda n: ("certified" if n.get("certificate_holds") else "NOT certified") if n else "–"  # noqa: E731
     def learned(n: dict) -> str:
         vs = n.get("val_loss_vs_mean")
-        return f", val loss {vs:.3f} × the mean's" if isinstance(vs, float) else ""
+        gain = n.get("gain_change")
+        return ((f", val loss {vs:.3f} × the mean's" if isinstance(vs, float) else "") +
+                (f", as gain Δk_p {gain['dkp']:+.2f}, Δk_d {gain['dkd']:+.2f}" if gain else ""))
 
     return (f"=== recipe {name}: inputs {details.get('feature_set')}, bound {details.get('base_bound', float('nan')):.4g} "
             f"({details.get('bound_units')}); base network {cert(base)} (L_N in its state inputs "
             f"{base.get('certified_lipschitz_state', float('nan')):.3g}, all inputs "
             f"{base.get('certified_lipschitz_physical', float('nan')):.3g}, vs largest certified "
             f"{base.get('largest_certified_physical', float('nan')):.3g}{learned(base)}), TDR network {cert(tdr)} "
-            f"({tdr.get('certified_lipschitz_state', float('nan')):.3g}{learned(tdr)}) ===")
+            f"({tdr.get('certified_lipschitz_state', float('nan')):.3g}{learned(tdr)})" +
+            (f"; at the tuned gains TDR network {cert(tuned)} ({tuned.get('certified_lipschitz_state', float('nan')):.3g}"
+             f"{learned(tuned)})" if tuned else "") + " ===")
 
 
 def format_labels(details: dict) -> str:
@@ -75,14 +83,15 @@ def format_tables(results: dict, details: dict | None = None) -> str:
             if method in settle and settle[method]["mean"] is not None:
                 cell += f"   settles {settle[method]['mean']:.2f} s"
             paper = PAPER_FIGURES_CM[name].get(method)
-            rows.append((method, cell, "—" if paper is None else f"{paper:.2f}"))
+            rows.append((_method_label(method, name, details), cell, "—" if paper is None else f"{paper:.2f}"))
         out.append(_table(title, rows))
     if "noise_free_nominal" in results:
         nf = results["noise_free_nominal"]
         rows = [("method", "steady-state |e_z| [cm]", "thrust std [N]  ·  error peak [Hz]")]
         for method, result in nf["methods"].items():
             std, peak = nf["thrust_std_n"][method], nf["peak_hz"][method]
-            rows.append((method, _cell(result), f"{_num(std)}  ·  {_num(peak)}"))
+            rows.append((_method_label(method, "nominal_landing_noiseless", details), _cell(result),
+                         f"{_num(std)}  ·  {_num(peak)}"))
         out.append(_table("Noise-free nominal landing (motion capture without noise)", rows))
     if "lipschitz_ablation" in results:
         rows = [(f"L_N ({results['lipschitz_ablation'].get('units', 'normalised')})", "nominal", "OOD")]
@@ -98,6 +107,78 @@ def format_tables(results: dict, details: dict | None = None) -> str:
                 f"{_cell(abl['ood'][bound])}  (paper {paper_o})",
             ))
         out.append(_table("L_N ablation — Neural-ESO steady-state |z error| [cm]", rows))
+    return "\n\n".join(out)
+
+
+def _method_label(method: str, scenario: str, details: dict | None) -> str:
+    """``method``, and for one flown at other gains than the paper's the gains (``details["tuned_gains"]``, and
+    ``details["tdr_as_gain"]`` for PD+ESO flown at a TDR network's slopes added to the gains)."""
+    gains = (details or {}).get("tdr_as_gain", {}).get(method) or (
+        (details or {}).get("tuned_gains", {}).get(SCENARIO_KIND.get(scenario, "")) if method.endswith(TUNED) else None)
+    if not gains:
+        return method
+    return f"{method} (k_p {gains['kp']:.3g}, k_d {gains['kd']:.3g}, ω_o {gains['omega_o']:g})"
+
+
+def format_tuning(details: dict) -> str:
+    """The tuned baseline's gains per kind of flight and how they were found (sim.tuning)."""
+    t = details.get("tuning") or {}
+    if t.get("given"):
+        gains = details.get("tuned_gains", {})
+        return "Tuned PD+ESO: gains given, not searched: " + "; ".join(
+            f"{k} k_p {g['kp']:g}, k_d {g['kd']:g}, ω_o {g['omega_o']:g}" for k, g in gains.items())
+    if not t:
+        return "Tuned PD+ESO: no search recorded"
+    c = t["config"]
+    lines = [f"Tuned PD+ESO (sim.tuning): grid k_p {c['kp_grid']} × k_d {c['kd_grid']} × ω_o {c['omega_o_grid']} on "
+             f"tuning seeds {t['seeds']} (not the evaluation seeds); conditions: no crash, at ×{c['noise_factor']:g} "
+             f"noise every hold at 0.1 m flown and its thrust std ≤ ×{c['max_thrust_std_ratio']:g} the paper gains' "
+             f"({t['paper_robustness']['thrust_std_n']:.2f} N), noise-free thrust std ≤ ×{c['max_thrust_std_ratio']:g} "
+             f"theirs ({t['paper_robustness']['quiet_thrust_std_n']:.3f} N), PD+ESO certified with an |e_z| bound "
+             f"≤ ×{POLICY.max_bound_ratio:g} the paper gains' ({t['paper_certificate']['pdeso_bound_cm']:.3g} cm) "
+             f"and a learned budget ≥ ×{c['min_budget_fraction']:g} theirs "
+             f"({t['paper_certificate']['budget']:.3g} (m/s²)/unit z)"]
+    for kind, k in t["kinds"].items():
+        g, rob, cert = k["gains"], k["robustness"], k["certificate"]
+        paper = k.get("paper_objective_cm")
+        first = "; ".join(f"({r['kp']:g}, {r['kd']:g}, {r['omega_o']:g}): {r['why'][0]}" for r in k["rejected"][:3])
+        lines.append(
+            f"  {kind}: k_p {g['kp']:g}, k_d {g['kd']:g}, ω_o {g['omega_o']:g}: {_opt(k['objective_cm'])} cm on the "
+            f"tuning seeds (paper gains {_opt(paper)}); ×{c['noise_factor']:g} noise: thrust std "
+            f"{_opt(rob['thrust_std_n'])} N, hold z RMS {_opt(rob['z_rms_cm'])} cm; noise-free thrust std "
+            f"{_opt(rob['quiet_thrust_std_n'], '.3f')} N; budget {_opt(cert.get('budget'), '.3g')}, PD+ESO bound "
+            f"{_opt(cert.get('pdeso_bound_cm'), '.3g')} cm" + (" — NONE MET THE CONDITIONS" if k.get("none_met") else "")
+            + (f"; {len(k['rejected'])} better point(s) failed: {first}" if k["rejected"] else ""))
+        stated = TUNED_GAINS.get(kind)
+        if stated is not None and stated.to_dict() != g:
+            lines.append(f"    (not sim.tuning.TUNED_GAINS[{kind!r}], {stated.text()}, which neso demo tdr flies: the "
+                         "world or the search changed since it was stated)")
+    return "\n".join(lines)
+
+
+def _opt(v, form: str = ".2f") -> str:
+    return "–" if v is None else format(v, form)
+
+
+def format_robustness(results: dict) -> str:
+    """The tuning's conditions measured on the evaluation seeds for PD+ESO and the learned pathway at both gains."""
+    rb = results.get("robustness")
+    if not rb:
+        return ""
+    out = []
+    for kind, by_method in rb["kinds"].items():
+        rows = [("method", f"×{rb['noise_factor']:g} noise: holds flown",
+                 "hold thrust std [N] · z RMS [cm] · peak [Hz]", "lemniscate flown · RMSE [cm] (reported)",
+                 "noise-free thrust std [N]", "meets the conditions")]
+        for m, r in by_method.items():
+            lem = (f"{r['lemniscate_flown']}/{r['lemniscate_total']} · {_opt(r['lemniscate_rmse_cm'])}"
+                   if r["lemniscate_total"] else "–")
+            rows.append((m, f"{r['hold_flown']}/{r['hold_total']}",
+                         f"{_opt(r['thrust_std_n'])} · {_opt(r['z_rms_cm'])} · {_opt(r['peak_hz'])}", lem,
+                         _opt(r["quiet_thrust_std_n"], ".3f"),
+                         "yes" if not r.get("why") else "NO: " + "; ".join(r["why"])))
+        out.append(_table(f"Robustness, {kind} gains (evaluation seeds; the conditions of the tuning, against pd_eso)",
+                          rows))
     return "\n\n".join(out)
 
 
@@ -135,6 +216,43 @@ def comparisons(results: dict) -> list[tuple[str, bool, str]]:
                        f"neural_observer {_cell(nobs)}, worst other {worst:.2f}"))
         claims.append(("lemniscate: pd_nn worse than pd_eso", (mean(le, "pd_nn") or float("inf")) > (eso or 0),
                        f"pd_nn {_fmt([mean(le, 'pd_nn')])[0]}, pd_eso {_fmt([eso])[0]}"))
+    return claims + tuned_comparisons(results)
+
+
+def tuned_comparisons(results: dict) -> list[tuple[str, bool, str]]:
+    """Against PD+ESO at the tuned gains, the baseline a learned pathway is said to pay against (issue 32)."""
+    def mean(exp, method):
+        return results.get(exp, {}).get("methods", {}).get(method, {}).get("mean")
+
+    def ratio(a, b):
+        return None if a is None or b is None or b <= 0 else a / b
+
+    claims = []
+    for exp in ("nominal_landing", "ood_slope", "lemniscate_near_ground"):
+        r = ratio(mean(exp, "pd_eso_tuned"), mean(exp, "pd_eso"))
+        if r is not None:
+            claims.append((f"{exp}: tuned PD+ESO no worse than at the paper's gains", r <= 1.0,
+                           f"pd_eso_tuned / pd_eso = {r:.2f}"))
+    r = ratio(mean("nominal_landing", "neural_eso_tuned"), mean("nominal_landing", "pd_eso_tuned"))
+    if r is not None:
+        rp = ratio(mean("nominal_landing", "neural_eso"), mean("nominal_landing", "pd_eso_tuned"))
+        claims.append(("nominal: neural_eso ≤ 0.8 × tuned PD+ESO, both at the tuned gains", r <= 0.8,
+                       f"neural_eso_tuned / pd_eso_tuned = {r:.2f}" +
+                       (f" (neural_eso at the paper's gains / pd_eso_tuned = {rp:.2f})" if rp is not None else "")))
+    le = "lemniscate_near_ground"
+    r = ratio(mean(le, "neural_eso_tdr_tuned"), mean(le, "pd_eso_tuned"))
+    if r is not None:
+        rp = ratio(mean(le, "neural_eso_tdr"), mean(le, "pd_eso_tuned"))
+        claims.append(("lemniscate: TDR ≥ 10 % below tuned PD+ESO, both at the tuned gains", r <= 0.9,
+                       f"neural_eso_tdr_tuned vs pd_eso_tuned {(r - 1) * 100:+.1f} %" +
+                       (f" (TDR at the paper's gains vs pd_eso_tuned: {(rp - 1) * 100:+.1f} %)" if rp is not None
+                        else "")))
+    for suffix, where in (("", "the paper's gains"), (TUNED, "the tuned gains")):
+        tdr, gain, eso = (mean(le, f"{m}{suffix}") for m in ("neural_eso_tdr", "pd_eso_tdr_gain", "pd_eso"))
+        if None not in (tdr, gain, eso):
+            claims.append((f"lemniscate at {where}: TDR beats its own slopes flown as gain by PD+ESO", tdr < gain,
+                           f"vs pd_eso{suffix}: TDR {(tdr / eso - 1) * 100:+.1f} %, its slopes as gain alone "
+                           f"{(gain / eso - 1) * 100:+.1f} %"))
     return claims
 
 
@@ -153,11 +271,12 @@ def format_comparisons(results: dict) -> str:
     return "\n".join(lines)
 
 
-def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict) -> str:
+def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict, details: dict | None = None) -> str:
     """The experiments flown in both worlds side by side with the paper's figures (cm, mean ± std):
     ``builtin`` the built-in world's ``experiments``, ``variants`` gain set → the PX4 world's
     (``neso experiment paper --world px4``), with the PX4 allocator's saturation (% of airborne sensor periods)
-    and the true z disturbance's spread (std, m/s²) in each world (``builtin_disturbance`` the built-in's)."""
+    and the true z disturbance's spread (std, m/s²) in each world (``builtin_disturbance`` the built-in's);
+    ``details``: the built-in run's, whose tuned gains label the ``_tuned`` methods."""
     names = list(variants)
     head = ("method", "paper", "built-in world", *(f"PX4, gains {g}" for g in names),
             *(f"PX4 sat. % ({g})" for g in names), "f_z std built-in", *(f"f_z std PX4 ({g})" for g in names))
@@ -167,7 +286,8 @@ def format_worlds(builtin: dict, variants: dict, builtin_disturbance: dict) -> s
         for method in variants[names[0]]["experiments"][scenario]["methods"]:
             paper = PAPER_FIGURES_CM.get(scenario, {}).get(method)
             ours = builtin.get(scenario, {}).get("methods", {}).get(method)
-            rows.append((method, "–" if paper is None else f"{paper:.2f}", _cell(ours) if ours else "–",
+            rows.append((_method_label(method, scenario, details), "–" if paper is None else f"{paper:.2f}",
+                         _cell(ours) if ours else "–",
                          *(_cell(variants[g]["experiments"][scenario]["methods"][method]) for g in names),
                          *(_sat(variants[g]["saturation_percent"][scenario][method]) for g in names),
                          _sat(builtin_disturbance[scenario][method], "{:.2f}"),

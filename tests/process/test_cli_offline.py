@@ -11,7 +11,7 @@ from neso.learning import recipe_of
 from neso.netfile import load_network
 from flight.estimator import DEFAULT_NETWORK
 from tests.busutil import REPO, free_port
-from tests.helpers import flight_messages, write_recording
+from tests.helpers import EXAMPLE, flight_messages, write_recording
 
 
 def neso_run(*args: str, timeout_s: float = 180.0) -> subprocess.CompletedProcess:
@@ -43,6 +43,19 @@ def test_train_with_no_bus_trains_here_stores_in_the_registry_and_networks_list_
 
     refused = neso_run("train", str(rrd), "--offline", "--registry", str(registry))  # offer asked, offline
     assert refused.returncode == 1 and refused.stdout.count("\n") == 1 and "--no-offer" in refused.stdout
+
+
+def test_offline_training_outside_the_checkout_warm_starts_from_the_shipped_network(tmp_path):
+    """Issue 32: run from a user's own folder, `neso train FILE --no-offer --offline` failed with "No such file or
+    directory: 'networks/base.safetensors'"; the estimator finds the shipped network from anywhere, so must this."""
+    registry = tmp_path / "registry"
+    out = subprocess.run([sys.executable, "-m", "cli.main", "train", str(EXAMPLE), "--no-offer", "--offline",
+                          "--epochs", "2", "--registry", str(registry)], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=180)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert f"tdr warm-started from {Path(REPO, DEFAULT_NETWORK)}" in out.stdout and "No such file" not in out.stdout
+    (trained,) = registry.rglob("*.safetensors")
+    assert load_network(trained).metadata["parent"] == load_network(Path(REPO, DEFAULT_NETWORK)).metadata["id"]
 
 
 def test_what_if_with_a_negative_bound_is_refused_in_one_line_without_a_warning():

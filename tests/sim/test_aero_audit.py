@@ -78,7 +78,7 @@ def test_applied_reference_removes_the_echo_of_the_command_through_delay_and_lag
     lag (noisy mocap makes the command jitter): f_true_z is that jitter's echo; referenced to the
     applied thrust it all but vanishes."""
     from sim.aero_audit import applied_referenced_f_z
-    from sim.experiments import FlightTask, run_flight
+    from sim.flights import FlightTask, run_flight
     from sim.scenarios import make_scenario
 
     cfg = PaperConfig()

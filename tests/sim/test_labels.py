@@ -40,7 +40,7 @@ def flights():
 
 
 def test_the_thrust_response_identified_on_a_landing_is_a_delay_of_tens_of_milliseconds(flights):
-    lag, _ = identify_thrust_lag([flights[0].series()])
+    lag = identify_thrust_lag([flights[0].series()]).lag
     # the simulator's thrust: 10 ms transport delay and a 44.8 ms lag, seen through 10 ms of mocap latency
     total = lag.time_constant_s + lag.delay_s
     assert 0.03 <= total <= 0.09, lag
@@ -48,7 +48,7 @@ def test_the_thrust_response_identified_on_a_landing_is_a_delay_of_tens_of_milli
 
 def test_the_lag_consistent_label_matches_the_truth_better_than_the_eso_and_tdr_labels(flights):
     landing, lemniscate = flights
-    lag, _ = identify_thrust_lag([landing.series()])
+    lag = identify_thrust_lag([landing.series()]).lag
     for log, paper_label in ((landing, "eso"), (lemniscate, "tdr")):
         series = log.series()
         rms_paper, shift_paper = _score(log, labels(series, paper_label))
@@ -61,7 +61,7 @@ def test_the_lag_consistent_label_matches_the_truth_better_than_the_eso_and_tdr_
 
 def test_without_the_thrust_lag_the_label_echoes_the_command(flights):
     landing, lemniscate = flights
-    lag, _ = identify_thrust_lag([landing.series()])
+    lag = identify_thrust_lag([landing.series()]).lag
     series = lemniscate.series()
     right = _score(lemniscate, labels(series, "applied", lag))[0]
     none = _score(lemniscate, labels(series, "applied", ThrustLag()))[0]

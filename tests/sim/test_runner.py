@@ -15,7 +15,8 @@ from neso.methods import METHODS, build_estimator
 from neso.trajectories import Landing, Lemniscate
 from neso.features import DEFAULT_FEATURE_SET, ThrustLag
 from neso.types import OMEGA_O_RPS
-from sim.experiments import FlightTask, run_flight, training_pairs
+from sim.experiments import training_pairs
+from sim.flights import FlightTask, run_flight
 from sim.runner import fly
 from sim.scenarios import make_scenario
 
@@ -123,30 +124,54 @@ def test_the_flight_certificates_bound_holds_in_simulated_flights(network, scena
 
 
 def test_paper_pipeline_cli_writes_the_documented_json(tmp_path):
+    """The pipeline end to end through the CLI, with the tuned baseline at the gains the search states
+    (tests/sim/test_tuning.py flies the search itself)."""
+    from sim.tuning import TUNED_GAINS
+
     out = tmp_path / "paper.json"
+    tuned = [f"--tuned={k}={g.kp:g},{g.kd:g},{g.omega_o_rps:g}" for k, g in TUNED_GAINS.items()]
     proc = subprocess.run(
         [sys.executable, "-m", "cli.main", "experiment", "paper", "--trials", "1", "--epochs", "3",
-         "--workers", "2", "--json", str(out), "--plots", str(tmp_path / "plots")],
+         "--workers", "2", "--json", str(out), "--plots", str(tmp_path / "plots"), *tuned],
         capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     data = json.loads(out.read_text())
-    assert set(data) == {"experiments", "seconds", "trials", "recipe", "recipes"} and data["trials"] == 1
+    assert set(data) == {"experiments", "seconds", "trials", "recipe", "recipes", "tuned_gains",
+                         "tuned_gains_fly"} and data["trials"] == 1
+    assert data["tuned_gains"] == {k: g.to_dict() for k, g in TUNED_GAINS.items()}
     assert data["recipe"] == "certified" and set(data["recipes"]) == {"certified", "paper"}
     assert data["recipes"]["certified"]["experiments"] == data["experiments"]
     for name, recipe in data["recipes"].items():
         exps = recipe["experiments"]
         assert set(exps) == {"nominal_landing", "ood_slope", "lipschitz_ablation", "lemniscate_near_ground",
-                             "noise_free_nominal"}
-        assert set(exps["noise_free_nominal"]["methods"]) == {"pd_eso", "neural_eso"}
+                             "noise_free_nominal", "robustness"}
+        assert set(exps["noise_free_nominal"]["methods"]) == {"pd_eso", "pd_eso_tuned", "neural_eso", "neural_eso_tuned"}
         assert exps["nominal_landing"]["metric"] == "steady_state_abs_z_error_cm"
         assert exps["lemniscate_near_ground"]["metric"] == "z_rmse_cm"
-        assert set(exps["lemniscate_near_ground"]["methods"]) == set(METHODS)
+        flown = set(exps["lemniscate_near_ground"]["methods"])
+        assert set(METHODS) | {"pd_eso_tuned", "neural_eso_tuned", "neural_eso_tdr_tuned"} <= flown
+        assert flown - set(METHODS) <= {"pd_eso_tuned", "neural_eso_tuned", "neural_eso_tdr_tuned", "pd_eso_tdr_gain",
+                                        "pd_eso_tdr_gain_tuned"}
+        assert set(exps["nominal_landing"]["methods"]) >= {"pd_eso_tuned", "neural_eso_tuned"}
+        landing, lemniscate = exps["robustness"]["kinds"]["landing"], exps["robustness"]["kinds"]["lemniscate"]
+        assert set(landing) == {"pd_eso", "pd_eso_tuned", "neural_eso", "neural_eso_tuned"} and landing["pd_eso"]["why"] == []
+        assert lemniscate["neural_eso_tdr_tuned"]["lemniscate_total"] == 1 and "why" in lemniscate["neural_eso_tdr_tuned"]
+        details = recipe["details"]
+        for method, gains in details["tdr_as_gain"].items():  # PD+ESO at the TDR network's slopes added to its gains
+            flown_at = TUNED_GAINS["lemniscate"] if method.endswith("_tuned") else None
+            net = details["networks"]["tdr_tuned" if flown_at else "tdr"]
+            assert gains["kp"] == pytest.approx((flown_at.kp if flown_at else 10.0) + net["gain_change"]["dkp"])
+            assert gains["kd"] == pytest.approx((flown_at.kd if flown_at else 6.0) + net["gain_change"]["dkd"])
+        assert details["networks"]["tdr_tuned"]["gains"] == TUNED_GAINS["lemniscate"].to_dict()
         assert len(exps["lipschitz_ablation"]["nominal"]) == 4
         for exp in ("nominal_landing", "ood_slope", "lemniscate_near_ground"):
             for result in exps[exp]["methods"].values():
                 assert set(result) == {"mean", "std", "trials", "diverged"}
                 assert len(result["trials"]) == 1
+    # PD+ESO at the tuned gains is the same flight whatever the recipe, and another flight than at the paper's
+    a, b = (data["recipes"][r]["experiments"]["lemniscate_near_ground"]["methods"] for r in ("certified", "paper"))
+    assert a["pd_eso_tuned"] == b["pd_eso_tuned"] and a["pd_eso_tuned"] != a["pd_eso"]
     assert set(data["recipes"]["paper"]["experiments"]["lipschitz_ablation"]["nominal"]) == {"0.2", "0.5", "1.0", "2.0"}
     assert data["recipes"]["certified"]["details"]["networks"]["base_x1"]["certificate_holds"]
     for recipe in data["recipes"].values():  # the verdict is the services' (neso.certificate.flight_certificate)
@@ -157,3 +182,6 @@ def test_paper_pipeline_cli_writes_the_documented_json(tmp_path):
     assert not data["recipes"]["paper"]["details"]["networks"]["base_x1"]["certificate_holds"]  # T_{k-1} in the loop
     assert len(list((tmp_path / "plots").glob("*.png"))) == 4
     assert "Experiment 1" in proc.stdout and "comparisons" in proc.stdout and "recipe paper" in proc.stdout
+    assert "Tuned PD+ESO: gains given, not searched" in proc.stdout and "Robustness, lemniscate gains" in proc.stdout
+    g = TUNED_GAINS["lemniscate"]
+    assert f"pd_eso_tuned (k_p {g.kp:.3g}, k_d {g.kd:.3g}, ω_o {g.omega_o_rps:g})" in proc.stdout

@@ -85,3 +85,33 @@ def test_attitude_from_force_agrees_with_the_rotation_it_describes_over_random_f
         thrust, roll, pitch, yaw_out = attitude_from_force(force, yaw)
         np.testing.assert_allclose(world_from_body_zyx(roll, pitch, yaw_out)[:, 2] * thrust, force, atol=1e-12)
         assert math.remainder(yaw_out - yaw, 2 * math.pi) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_networks_slopes_on_the_state_are_the_gain_change_equivalent_gains_says():
+    """Issue 32: the controller subtracts f̂, so f_N = f0 + s_p p_z + s_v v_z flies as k_p + s_p, k_d + s_v on
+    e = z* − z (and a feed-forward s_p z* + s_v ż* that does not act on the error): the same command, sample for
+    sample, over random states, references and slopes of both signs."""
+    from dataclasses import replace
+
+    from neso.learning import equivalent_gains
+
+    rng = np.random.default_rng(7)
+    base = ControlConfig(force_rate_limit_nps=1e6)
+    for _ in range(50):
+        s_p, s_v, f0 = rng.uniform(-4, 8), rng.uniform(-2, 3), rng.uniform(-1, 1)
+        change = equivalent_gains({"pos_z_m": s_p, "vel_z_mps": s_v, "roll_rad": 0.3})
+        kp, kd = change.gains(base.kp[2], base.kd[2])
+        if kp <= 0 or kd <= 0:
+            continue
+        stiffer = replace(base, kp=(*base.kp[:2], kp), kd=(*base.kd[:2], kd))
+        meas = measurement(pos=tuple(rng.uniform(-1, 1, 3) + (0, 0, 1)))
+        meas = replace(meas, vel_enu_mps=rng.uniform(-1, 1, 3))
+        ref = Reference(pos_enu_m=rng.uniform(-1, 1, 3) + (0, 0, 1), vel_enu_mps=rng.uniform(-1, 1, 3),
+                        acc_enu_mps2=rng.uniform(-1, 1, 3))
+        f_n = np.array([0.0, 0.0, f0 + s_p * meas.pos_enu_m[2] + s_v * meas.vel_enu_mps[2]])
+        feed_forward = np.array([0.0, 0.0, f0 + s_p * ref.pos_enu_m[2] + s_v * ref.vel_enu_mps[2]])
+        a = PositionController(base).step(meas, ref, f_n)
+        b = PositionController(stiffer).step(meas, ref, feed_forward)
+        assert a.setpoint.thrust_n == pytest.approx(b.setpoint.thrust_n, rel=1e-12)
+        assert np.allclose(a.force_enu_n, b.force_enu_n, rtol=1e-12, atol=1e-12)
+    assert equivalent_gains({"pos_z_m": 1.0}) is None  # without the velocity's slope there is no equivalence to say

@@ -80,6 +80,17 @@ def test_the_network_panel_shows_the_candidate_and_its_prediction():
     text = network_markdown(v)
     assert "learned: val loss 0.410 × the mean's · slopes pos_z_m -2.41, pitch_rad -0.22" in text
     assert "shadow error none yet" in text  # no shadow sample yet: no made-up number
+    # what it learned, in gain terms, and the prediction against PD+ESO and its slopes flown as gain alone
+    split = dict(candidate, gain_change={"dkp": 5.46, "dkd": 1.58}, predicted={
+        "rmse_active_cm": 1.5, "rmse_candidate_cm": 1.2, "change": -0.2, "rmse_pdeso_cm": 1.4, "change_vs_pdeso": -1 / 7,
+        "rmse_gain_only_cm": 1.25, "gain_only": {"dkp": 5.46, "dkd": 1.58, "kp": 15.46, "kd": 7.58},
+        "split": {"total_cm": 0.2, "gain_cm": 0.15, "learned_cm": 0.05}})
+    v.ingest("network", dataclasses.replace(msg, candidate=split), 100.5)
+    text = network_markdown(v)
+    assert "as gain Δk_p +5.46 /s², Δk_d +1.58 /s" in text
+    assert ("predicted z RMSE 1.50 → 1.20 cm (-20 %); PD+ESO at the flown gains 1.40 cm (candidate -14 %); its slopes "
+            "as gain alone (k_p 15.5, k_d 7.58: Δk_p +5.46, Δk_d +1.58) 1.25 cm: of the 0.20 cm it gains over PD+ESO, "
+            "0.15 is gain and 0.05 learned disturbance") in text
 
 
 def test_the_certificate_row_keeps_its_bound_in_one_cell():

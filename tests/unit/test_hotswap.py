@@ -260,6 +260,13 @@ def test_promoting_an_uncertified_or_predicted_worse_candidate_needs_force(core,
     assert not ok and "predicted to fly worse" in why and "+20 %" in why
     ok, why = core.promote(force=True)
     assert ok and "by force" in why
+    # better than the active network, no better than PD+ESO at the flown gains: not an improvement either
+    core.accept(core.check_offer(good), good, {"rmse_active_cm": 1.3, "rmse_candidate_cm": 1.2, "change": -0.077,
+                                               "rmse_pdeso_cm": 1.1, "change_vs_pdeso": 0.09})
+    ok, why = core.promote()
+    assert not ok and "no better than PD+ESO at the flown gains" in why and "PD+ESO at the flown gains 1.10 cm" in why
+    ok, why = core.promote(force=True)
+    assert ok and "by force" in why
 
 
 # -- the canary --------------------------------------------------------------------------------

@@ -132,7 +132,7 @@ def test_labels_in_m_per_s2_do_not_depend_on_the_mass_given_at_import(tmp_path, 
         a = load_training_set(nominal, label)
         b = load_training_set(heavy, label)
         assert (a.mass_kg, b.mass_kg) == (1.0, 2.65)
-        assert a.thrust_lag == b.thrust_lag and a.lag_source == b.lag_source == "identified"
+        assert a.thrust_lag == b.thrust_lag and a.lag_source == b.lag_source  # identified, or the fit's edge said
         np.testing.assert_allclose(b.y_mps2, a.y_mps2, rtol=0, atol=1e-9)
         np.testing.assert_allclose(b.z, a.z, rtol=0, atol=1e-9)
 

@@ -62,8 +62,27 @@ def test_a_tdr_job_trains_from_the_active_network_certifies_predicts_stores_and_
     pred = entry.info["predicted"]
     assert pred == result.predicted and pred["seconds"] > 5
     assert pred["rmse_active_cm"] > 0 and pred["rmse_candidate_cm"] > 0
-    assert pred["change"] == pytest.approx(pred["rmse_candidate_cm"] / pred["rmse_active_cm"] - 1)
+    # the counterfactual's change in mean square, on the recorded flight's own level (sim.counterfactual)
+    assert pred["change_counterfactual"] == pytest.approx(pred["rmse_candidate_cm"] / pred["rmse_active_cm"] - 1)
+    f, a, c = pred["rmse_recorded_cm"], pred["rmse_active_cm"], pred["rmse_candidate_cm"]
+    assert f > 0 and pred["expected_active_cm"] == pytest.approx(f)
+    assert pred["expected_candidate_cm"] == pytest.approx((f * f + c * c - a * a) ** 0.5)
+    assert pred["change"] == pytest.approx(pred["expected_candidate_cm"] / f - 1)
+    assert np.sign(pred["change"]) == np.sign(pred["change_counterfactual"])
     assert entry.row()["predicted_change"] == pred["change"] and entry.info["val_loss"] >= 0
+    # what it learned, as gain: its mean slopes on p_z and v_z added to the flown gains, flown as PD+ESO alone
+    slopes = net.learned["slopes"]
+    assert entry.info["gain_change"] == {"dkp": slopes["pos_z_m"], "dkd": slopes["vel_z_mps"]}
+    assert pred["gain_only"] == {"dkp": slopes["pos_z_m"], "dkd": slopes["vel_z_mps"],
+                                 "kp": 10.0 + slopes["pos_z_m"], "kd": 6.0 + slopes["vel_z_mps"]}
+    assert pred["rmse_pdeso_cm"] > 0 and pred["rmse_gain_only_cm"] > 0
+    assert pred["change_vs_pdeso"] == pytest.approx(pred["expected_candidate_cm"] / pred["expected_pdeso_cm"] - 1)
+    if pred["change_vs_pdeso"] < 0:  # the split adds up: its gain alone plus what it learned beyond that
+        split = pred["split"]
+        assert split["gain_cm"] + split["learned_cm"] == pytest.approx(split["total_cm"])
+    text = result.summary()
+    assert "as gain Δk_p" in text and "k_p 10 → " in text and "PD+ESO at the flown gains" in text
+    assert "thrust lag" in text and "identified" in text
 
 
 def test_a_candidate_predicted_to_fly_worse_is_stored_but_not_offered(tmp_path):
@@ -110,14 +129,34 @@ def test_jobs_that_cannot_be_done_are_refused_with_the_reason(rrd, tmp_path):
 def test_a_candidate_that_learned_nothing_is_offered_only_by_force_and_a_diverged_one_never():
     from services.trainer import withheld_because
 
-    assert withheld_because(0.4, -0.1, False) == ""
-    assert "predicted to fly worse" in withheld_because(0.4, 0.05, False)
-    assert withheld_because(0.4, 0.05, True) == ""
+    better = {"change": -0.1, "change_vs_pdeso": -0.05}
+    assert withheld_because(0.4, better, False) == ""
+    assert "predicted to fly worse" in withheld_because(0.4, {"change": 0.05, "change_vs_pdeso": -0.01}, False)
+    assert withheld_because(0.4, {"change": 0.05}, True) == ""
+    assert "no better than PD+ESO" in withheld_because(0.4, {"change": -0.1, "change_vs_pdeso": 0.0}, False)
+    assert withheld_because(0.4, {"change": -0.1, "change_vs_pdeso": 0.02}, True) == ""
     for vs_mean in (1.0, 1.7):
-        why = withheld_because(vs_mean, -0.2, False)
+        why = withheld_because(vs_mean, better, False)
         assert why.startswith("not offered") and "predicting the mean" in why and "force_offer=true" in why
-        assert withheld_because(vs_mean, -0.2, True) == ""
+        assert withheld_because(vs_mean, better, True) == ""
     for force in (False, True):
-        assert "training diverged" in withheld_because(float("nan"), -0.2, force)
+        assert "training diverged" in withheld_because(float("nan"), better, force)
 
 
+def test_a_candidate_better_than_the_active_network_but_not_than_pd_eso_is_not_offered(tmp_path, monkeypatch):
+    """Issue 32: the trainer compared only with the active network, so in a still hover every candidate was offered
+    although none beat PD+ESO. Its prediction flies PD+ESO at the flown gains too, and that is the bar."""
+    import services.trainer as trainer
+
+    flown = {"rmse_active_cm": 1.20, "rmse_candidate_cm": 1.05, "change": 1.05 / 1.20 - 1, "rmse_pdeso_cm": 1.00,
+             "change_vs_pdeso": 0.05}
+    monkeypatch.setattr(trainer, "predict_closed_loop", lambda *a, **k: dict(flown))
+    config = TrainerConfig(registry=str(tmp_path / "registry"))
+    offered = []
+    job = parse_job(1, {"recordings": [str(EXAMPLE)], "epochs": 2}, config)
+    result = train_job(job, config, "uav1", ACTIVE, lambda p, pred: offered.append(p) or (True, ""), FLOWN)
+    assert result.info["val_loss_vs_mean"] < 1.0  # it learned something: only the PD+ESO bar withholds it
+    assert offered == [] and not result.offer[0] and "no better than PD+ESO at the flown gains" in result.offer[1]
+    forced = train_job(parse_job(2, {"recordings": [str(EXAMPLE)], "epochs": 2, "force_offer": True}, config), config,
+                       "uav1", ACTIVE, lambda p, pred: offered.append(p) or (True, "in shadow"), FLOWN)
+    assert forced.offer == (True, "in shadow") and offered == [forced.path]
