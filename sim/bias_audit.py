@@ -32,7 +32,8 @@ from neso.features import feature_set
 from neso.learning import RECIPES, identify_thrust_lag, recipe_blocks
 from neso.training import train_lipschitz_mlp
 from neso.trajectories import Dithered
-from sim.experiments import FlightTask, PaperConfig, _Pool, lemniscate_rmse_cm, training_pairs
+from sim.experiments import PaperConfig, training_pairs
+from sim.flights import FlightPool, FlightTask, lemniscate_rmse_cm
 from sim.mocap import NOISELESS_MOCAP
 from sim.quadrotor import z_disturbance_slopes
 from sim.scenarios import make_scenario
@@ -75,7 +76,7 @@ def _stats(values) -> dict:
 def run_bias(config: PaperConfig = PaperConfig(), *, log=print) -> dict:
     """The measurements of the module docstring at ``config.control``'s gains (``config.trials`` seeds)."""
     recipe = RECIPES[RECIPE]
-    pool = _Pool(config.workers)
+    pool = FlightPool(config.workers)
     est = config.estimator_config()
     seeds = [config.seed * 1000 + 1 + i for i in range(config.trials)]
 
