@@ -143,23 +143,23 @@ def _run_aero(config, args) -> int:
     from sim.aero_audit import format_aero, run_aero
 
     result = run_aero(config)
-    print()
-    print(format_aero(result))
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-        print(f"results: {args.json}")
-    return 0
+    return _report(format_aero(result), result, args.json)
 
 
 def _run_bias(config, args) -> int:
     from sim.bias_audit import config_for, format_bias, run_bias
 
     result = run_bias(config_for(args.kp, args.kd, config))
+    return _report(format_bias(result), result, args.json)
+
+
+def _report(text: str, result: dict, json_path) -> int:
+    """An audit's table printed, its result written as JSON to ``json_path`` if given; exit status 0."""
     print()
-    print(format_bias(result))
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-        print(f"results: {args.json}")
+    print(text)
+    if json_path:
+        json_path.write_text(json.dumps(result, indent=2))
+        print(f"results: {json_path}")
     return 0
 
 
