@@ -21,7 +21,6 @@ SUBCOMMANDS = {
     "demo": "cli.demo",
     "secure": "cli.secure",
     "px4": "cli.px4",
-    "preflight": "cli.preflight",
 }
 
 
