@@ -1,8 +1,8 @@
 """`neso demo tdr --world px4 --force-offer`: the Total Disturbance Retraining loop with real PX4 v1.16.0 SITL in the
-loop (a flight of its own, ~100 s): take-off as an operator does, the lemniscate recorded, a TDR network trained from
+loop (a flight of its own, ~150 s): take-off as an operator does, the lemniscate recorded, a TDR network trained from
 the recording, certified, predicted, offered (forced: whether a candidate predicted worse is withheld is the
 trainer's unit test, and in this world's lemniscate there is often nothing left to learn), promoted in flight with
-the swap sample answered, the lemniscate again under the canary."""
+the swap sample answered, the lemniscate again under the canary, and once more with PD+ESO at the same gains."""
 from __future__ import annotations
 
 import json
@@ -22,7 +22,9 @@ def test_a_network_retrained_in_the_loop_is_promoted_in_flight_with_px4_flying(t
     print(done.stdout[-3000:])
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     report = json.loads(report_path.read_text())
-    assert report["world"] == "px4" and len(report["lemniscate_start_t_s"]) == 2
+    # the base network's lemniscate, the promoted network's, then PD+ESO's at the same gains
+    assert report["world"] == "px4" and len(report["lemniscate_start_t_s"]) == 3
+    assert report["pdeso_samples"] >= 1400 and 0 < report["rmse_pdeso_cm"] < 5, report["rmse_pdeso_cm"]
     assert math.isfinite(report["rmse_before_cm"]) and math.isfinite(report["rmse_after_cm"])
     assert report["cycles_before_samples"] >= 1400 and report["cycles_after_samples"] >= 1400  # five 6 s cycles
     assert " done: " in report["trainer_summary"] and report["certificate"].get("holds") is True
