@@ -14,7 +14,8 @@ import pytest
 from neso.learning import RECIPES, identify_thrust_lag, recipe_blocks
 from neso.training import train_lipschitz_mlp
 from neso.features import feature_set
-from sim.experiments import FlightTask, PaperConfig, run_flight, training_pairs
+from sim.experiments import PaperConfig, training_pairs
+from sim.flights import FlightTask, run_flight
 
 RECIPE = RECIPES["certified"]
 
