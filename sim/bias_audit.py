@@ -87,7 +87,7 @@ def run_bias(config: PaperConfig = PaperConfig(), *, log=print) -> dict:
         log("ESO-teacher landings and the base network (on the reference)")
         teacher = pool.map(tasks("nominal_landing", "pd_eso", {}, config.landing,
                                  [config.seed * 1000 + 500 + i for i in range(config.teacher_flights)]))
-        lag, _ = identify_thrust_lag([t.series() for t in teacher])
+        lag = identify_thrust_lag([t.series() for t in teacher]).lag
         bound = config.base_bound(recipe)
         base = _train(*training_pairs(teacher, recipe.base_label, recipe.feature_set, lag, regressors="reference"),
                       bound, None, config)

@@ -26,7 +26,7 @@ def flights():
     est = cfg.estimator_config()
     teacher = [run_flight(FlightTask("nominal_landing", "pd_eso", {}, s, cfg.landing, est, cfg.control))
                for s in (500, 501)]
-    lag, _ = identify_thrust_lag([t.series() for t in teacher])
+    lag = identify_thrust_lag([t.series() for t in teacher]).lag
     bound = cfg.base_bound(RECIPE)
     base = _train(*training_pairs(teacher, RECIPE.base_label, RECIPE.feature_set, lag, regressors="reference"),
                   bound, None)
