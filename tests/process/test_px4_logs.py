@@ -72,7 +72,7 @@ def test_neso_train_takes_a_px4_log_and_reports_the_network(tmp_path, rerun_home
             stop(trainer)
     assert code == 0, out
     assert "imported px4-sitl-takeoff-hover.ulg" in out, out
-    done = re.search(r"job \d+ done: (\S+) at (\S+): (\d+) eso samples \(state@1, 1 kg\) from 1 recording\(s\), "
+    done = re.search(r"job \d+ done: (\S+) at (\S+): (\d+) eso samples \(state@1, 1 kg[;)].*? from 1 recording\(s\), "
                      r"val loss ([\d.e+-]+) × the mean's; slopes ∂f_N/∂input: pos_z_m .*certificate (holds|FAILS)", out)
     assert done, out
     assert 100 < int(done.group(3)) < 200 and os.path.isfile(done.group(2))
