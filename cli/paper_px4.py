@@ -247,9 +247,10 @@ class Px4Vehicle:
             self._next_s = time.monotonic()
         meas = self.world.step(setpoint)
         with self._lock:
-            self.gateway.core.on_state(meas, time.monotonic(), offboard=self.mode == "OFFBOARD")
-            if self.gateway.direct is not None:
-                self.gateway._forward_pose(meas)
+            now = time.monotonic()
+            self.gateway.core.on_state(meas, now, offboard=self.mode == "OFFBOARD")
+            if self.gateway.direct is not None:  # the world's measurement, captured as it is handed over
+                self.gateway._forward_pose(meas, now)
         return meas
 
     def _bring_up(self) -> None:
