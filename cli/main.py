@@ -21,6 +21,7 @@ SUBCOMMANDS = {
     "demo": "cli.demo",
     "secure": "cli.secure",
     "px4": "cli.px4",
+    "preflight": "cli.preflight",
 }
 
 

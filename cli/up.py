@@ -59,6 +59,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--mass-kg", type=float, default=ctl.mass_kg,
                    help="the vehicle's mass as the controller flies it (its thrust in newtons is for it); the estimator "
                         "certifies what flies for it, and refuses a network with a thrust input made for another mass")
+    p.add_argument("--px4-params", default="",
+                   help="--vehicle px4: PX4 SITL's airframe file (default: the world's, sim/px4/neso_quad.params; "
+                        "another one rehearses a vehicle set up otherwise: `neso preflight` names what is wrong)")
     p.add_argument("--gains", default=None, choices=tuple(GAIN_SETS),
                    help="the controller's start-up gains (live parameters after): paper, or px4 (xy softer for PX4's "
                         "slower attitude loop; the default with --vehicle px4, paper otherwise)")
@@ -73,6 +76,10 @@ def add_parser(subparsers) -> None:
                    help="--mocap natnet: frame rate in Hz, 100-360 (0: the world's mocap model's, 100 Hz)")
     p.add_argument("--natnet-lost", default=src.natnet.lost,
                    help="--mocap natnet: world-time windows with the rigid body untracked, 'start:duration,...' in s")
+    p.add_argument("--natnet-jitter", type=float, default=src.natnet.jitter_ms,
+                   help="--mocap natnet: std of each frame's send time in ms (half-normal: frames only ever late)")
+    p.add_argument("--natnet-version", default=src.natnet.version, choices=("3.0", "3.1", "4.0", "4.1"),
+                   help="--mocap natnet: the NatNet version the simulated Motive speaks")
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
@@ -133,7 +140,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
     if role == "source" and args.mocap == "natnet":
         specific += ["--mocap-stream", "natnet", "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost",
-                     args.natnet_lost]
+                     args.natnet_lost, "--natnet-jitter", str(args.natnet_jitter), "--natnet-version",
+                     args.natnet_version]
         if shared_motive(args):  # one Motive streams every vehicle's rigid body, named after the vehicle
             specific += ["--natnet-port", str(args.natnet_port), "--natnet-feed", str(motive_feed_port(args)),
                          "--natnet-body-id", str(index + 1), "--rigid-body", vehicle,
@@ -252,7 +260,7 @@ def build_specs(args) -> list[ProcessSpec]:
                                      cpus=cpus(role.name), stop_timeout_s=role.stop_grace_s))
             if role.name == "source" and args.vehicle == "px4":  # the autopilot: no bus role, a process of the loop
                 specs.append(ProcessSpec("px4" if len(vehicles) == 1 else f"{vehicle}/px4",
-                                         px4_argv(args.px4_instance + i, vehicle),
+                                         px4_argv(args.px4_instance + i, vehicle, args.px4_params),
                                          cpus=loop_cpus))
     return specs
 
@@ -287,16 +295,18 @@ def motive_argv(args) -> tuple[str, ...]:
     return python_module_argv("sim.natnet_motive", "--port", str(args.natnet_port), "--feed-port",
                               str(motive_feed_port(args)), "--bodies", ",".join(args.names),
                               "--rate", str(motive_rate_hz(args)), "--up-axis", args.natnet_up_axis,
-                              "--seed", str(args.seed))
+                              "--seed", str(args.seed), "--jitter-ms", str(args.natnet_jitter),
+                              "--natnet-version", args.natnet_version)
 
 
-def px4_argv(instance: int, vehicle: str) -> tuple[str, ...]:
+def px4_argv(instance: int, vehicle: str, params: str = "") -> tuple[str, ...]:
     """``neso px4`` as PX4 SITL ``instance`` for ``vehicle``, in a working folder of its own, emptied at each
-    (re)start so PX4 boots fresh (its .ulg logs stay there until the next)."""
+    (re)start so PX4 boots fresh (its .ulg logs stay there until the next); ``params``: another airframe file."""
     import tempfile
 
     workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{instance}-{vehicle}")
-    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir)
+    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir,
+                              *(("--params", params) if params else ()))
 
 
 def run(args) -> int:
@@ -305,13 +315,19 @@ def run(args) -> int:
         print(f"neso up: --vehicle {args.vehicle} runs in real time only (MAVSDK and the MAVLink link keep their own "
               "clock)", flush=True)
         return 2
-    if args.mocap == "natnet" and (args.lockstep or args.vehicle != "direct"):
-        print("neso up: --mocap natnet runs in real time with --vehicle direct only (the stream keeps its own clock)",
-              flush=True)
+    if args.mocap == "natnet" and (args.lockstep or args.vehicle == "px4"):
+        print("neso up: --mocap natnet runs in real time with --vehicle direct or mavlink only (the stream keeps its "
+              "own clock; PX4 SITL steps the world itself)", flush=True)
         return 2
     if args.vehicle == "px4":
-        from sim.px4_sitl import missing_px4
+        from sim.px4_sitl import load_params, missing_px4
 
+        if args.px4_params:
+            try:
+                load_params(args.px4_params)
+            except (OSError, ValueError) as exc:
+                print(f"neso up: --px4-params: {exc}", flush=True)
+                return 2
         if missing_px4():
             print(f"neso up: {missing_px4()}", flush=True)
             return 2
@@ -326,7 +342,7 @@ def run(args) -> int:
     if args.mocap == "natnet":
         bodies = f"one Motive streaming rigid bodies {vehicles}" if shared_motive(args) else "a simulated Motive"
         print(f"  motion capture:   NatNet from {bodies} on 127.0.0.1:{args.natnet_port}, "
-              f"{args.natnet_up_axis}-up, read by the motioncapture optitrack client", flush=True)
+              f"{args.natnet_up_axis}-up, NatNet {args.natnet_version}, read by the source's NatNet client", flush=True)
     loop_cpus, other_cpus = cpu_sets(isolating(args))
     if loop_cpus:
         print(f"  CPUs:             loop (hub, source, estimator, controller, px4_gateway) on {list(loop_cpus)}, "
@@ -343,6 +359,9 @@ def run(args) -> int:
 
         print(f"  controller gains: {controller_gains(args)} (kp, kd {GAIN_SETS[controller_gains(args)]}; --gains paper: "
               "the paper's)", flush=True)
+    if args.vehicle in ("mavlink", "px4"):
+        print(f"  preflight:        neso preflight{flag}  (the px4_gateway checks the vehicle every second and refuses "
+              "`arm` on a NO-GO)", flush=True)
     print(f"  live parameters:  neso params get estimator{flag} | neso params set estimator pathway=eso{flag}", flush=True)
     print(f"  missions:         neso cmd controller landing_test{flag}  (takeoff | hover | lemniscate | land | arm | hold | "
           "abort)", flush=True)

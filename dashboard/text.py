@@ -142,7 +142,23 @@ def vehicle_markdown(v: VehicleModel) -> str:
     rec_line = "**Recording**: " + (recording_text(v) if rec is None else
                                     f"{recording_text(v)} · flight `{rec.flight}` · {rec.size_bytes / 1e6:.1f} MB · "
                                     f"dropped {rec.dropped}")
-    return tel_text + "\n\n" + rec_line
+    return tel_text + "\n\n" + preflight_markdown(v) + "\n\n" + rec_line
+
+
+def preflight_markdown(v: VehicleModel) -> str:
+    """The px4_gateway's preflight verdict as it published it (the gateway decides and refuses to arm on a
+    no-go; the page only shows it): GO or NO-GO, then each no-go and warning item with its fix."""
+    pre = v.latest.get("preflight")
+    if pre is None:
+        return "**Preflight**: no verdict on the bus (no px4_gateway)"
+    flagged = [(name, e) for name, e in pre.items.items() if e[0] != "go"]
+    head = (f"**Preflight**: {'GO' if pre.go else '**NO-GO**'} ({len(pre.items)} items"
+            + (f", {sum(e[0] == 'warning' for _, e in flagged)} warnings" if flagged else "") + ")")
+    lines = [f"- {'**NO-GO**' if e[0] == 'no-go' else 'warning'} {name}: {e[1][:160]}"
+             + (f" → {e[2][:200]}" if e[2] else "") for name, e in flagged]
+    if pre.override:
+        lines.append(f"- **overridden by the operator**: {pre.override[:200]}")
+    return "\n".join([head, *lines])
 
 
 def network_markdown(v: VehicleModel) -> str:

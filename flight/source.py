@@ -79,6 +79,12 @@ class NatNetStreamConfig:
                             help="a shared simulated Motive's feed port (sim/natnet_motive.py, several vehicles on one "
                                  "stream): the world feeds it; 0: the world runs its own Motive on --natnet-port")
     body_id: int = option(1, flag="--natnet-body-id", help="the rigid body's ID in a shared Motive (1, 2, …)")
+    version: str = option("4.1", flag="--natnet-version", choices=("3.0", "3.1", "4.0", "4.1"),
+                          help="the NatNet version the simulated Motive speaks (Motive 2.0, 2.1, 3.0, 3.1)")
+
+    def version_tuple(self) -> tuple[int, int]:
+        major, minor = self.version.split(".")
+        return int(major), int(minor)
 
     def lost_windows(self) -> tuple[tuple[float, float], ...]:
         try:
@@ -165,7 +171,8 @@ class SimSource:
         now = self.clock()
         state = StateMsg(seq=self.seq, stamp_s=now, t_s=truth.t_s, pos_enu_m=vec(meas.pos_enu_m),
                          vel_enu_mps=vec(meas.vel_enu_mps), roll_rad=meas.roll_rad, pitch_rad=meas.pitch_rad,
-                         yaw_rad=meas.yaw_rad, source="sim")
+                         yaw_rad=meas.yaw_rad, source="sim",
+                         capture_stamp_s=max(0.0, now - (truth.t_s - meas.t_s)))  # the world's mocap exposure
         truth_msg = TruthMsg(seq=self.seq, stamp_s=now, t_s=truth.t_s, pos_enu_m=vec(truth.pos_enu_m),
                              vel_enu_mps=vec(truth.vel_enu_mps),
                              disturbance_acc_enu_mps2=vec(np.clip(truth.disturbance_acc_enu_mps2, -1e4, 1e4)),
@@ -198,8 +205,14 @@ class MocapSource:
         self._vel = np.zeros(3)
         self._next_publish_s = -math.inf
 
-    def frame(self, t_s: float, pos_m: np.ndarray, quat_wxyz: tuple[float, float, float, float]) -> StateMsg | None:
-        """One mocap frame at monotonic ``t_s``: the state to publish, or None between control ticks."""
+    def frame(self, t_s: float, pos_m: np.ndarray, quat_wxyz: tuple[float, float, float, float],
+              capture_stamp_s: float | None = None) -> StateMsg | None:
+        """One mocap frame taken at ``t_s`` on the stream's own clock (Motive's camera mid-exposure, s; the arrival
+        on this machine's monotonic clock for a system that gives no time): the state to publish, or None between
+        control ticks. ``capture_stamp_s``: that instant on this machine's monotonic clock
+        (:class:`flight.mocap_time.CaptureClock`; default ``t_s``). The state's ``t_s`` counts from the first
+        frame on the stream's clock, so its steps are whole frame intervals; a frame not newer than the last one
+        must not be given (:meth:`flight.mocap_time.StreamStats.add` tells)."""
         if self._t0 is None:
             self._t0 = t_s
         pos = self.enu_from_mocap @ np.asarray(pos_m, dtype=float)
@@ -223,4 +236,5 @@ class MocapSource:
         roll, pitch, yaw = euler_zyx_from_world_from_body(self.enu_from_mocap @ body @ self.enu_from_mocap.T)
         self.seq += 1
         return StateMsg(seq=self.seq, stamp_s=self.clock(), t_s=t_s - self._t0, pos_enu_m=vec(pos),
-                        vel_enu_mps=vec(self._vel), roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, source="mocap")
+                        vel_enu_mps=vec(self._vel), roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, source="mocap",
+                        capture_stamp_s=t_s if capture_stamp_s is None else capture_stamp_s)

@@ -36,15 +36,38 @@ def _in_order(values) -> tuple:
 
 
 def source_of(rec, vehicle: str) -> str:
-    """Where a recording's states came from, in a few words."""
+    """Where a recording's states came from, in a few words: the source's own description (its read-only
+    parameters, recorded at the flight's start: NatNet version, server and rigid body; the simulated world and how
+    it was flown) and the autopilot that flew it (its telemetry: PX4's version); recordings from before the
+    description say the states' ``source`` field."""
     imported = rec.properties.get("import")
     if isinstance(imported, dict) and imported.get("format") == "NanoBench CSV":
         return f"NanoBench {imported.get('file_name', '?')} ({imported.get('hardware', '?')}, Vicon)"
     if isinstance(imported, dict):
         version = str(imported.get("px4_version", "?")).split(" ")[0]
         return f"PX4 log {imported.get('file_name', '?')} ({version}, {imported.get('hardware', '?')})"
-    sources = rec.channel("state", vehicle).columns.get("source", [])
-    return "/".join(dict.fromkeys(sources)) or "-"
+    d = rec.properties.get("params", {}).get("source")
+    autopilots = _autopilots(rec, vehicle)
+    flown = f" · {'/'.join(autopilots)}" if autopilots else ""
+    if not isinstance(d, dict) or "kind" not in d:
+        sources = rec.channel("state", vehicle).columns.get("source", [])
+        return ("/".join(dict.fromkeys(sources)) or "-") + flown
+    if d["kind"] == "natnet":
+        simulated = f", simulated ({d['scenario']})" if d.get("world") else ""
+        return (f"NatNet {'.'.join(str(d.get('natnet_version', '?')).split('.')[:2])} {d.get('rigid_body', '?')}@"
+                f"{d.get('server', '?')}{simulated}{flown}")
+    if d["kind"] == "sim":
+        link = {"px4": " in PX4 SITL", "mavlink": " as a MAVLink PX4"}.get(d.get("link", ""), "")
+        return f"sim {d.get('scenario', '?')}{link}{flown}"
+    return f"{d['kind']} {d.get('rigid_body', '?')}@{d.get('server', '?')}{flown}"
+
+
+def _autopilots(rec, vehicle: str) -> list[str]:
+    """The autopilot versions the flight's telemetry named (the recorder's summary, else the telemetry itself)."""
+    named = rec.properties.get("summary", {}).get("autopilots")
+    if isinstance(named, list) and named:
+        return [str(a) for a in named]
+    return [a for a in dict.fromkeys(rec.channel("telemetry", vehicle).columns.get("autopilot", [])) if a]
 
 
 def describe(path: str | Path) -> Entry:

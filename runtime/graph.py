@@ -66,12 +66,14 @@ ROLES: tuple[Role, ...] = (
     Role("trainer", "services.trainer", "trains, certifies and stores networks from recordings; offers them to the estimator",
          publishes={}, subscribes=_topics("network"), enabled_by="trainer", offers_to=("estimator",)),
     Role("px4_gateway", "services.px4_gateway",
-         "setpoints → PX4 offboard attitude through MAVSDK; vehicle telemetry back; mocap → external vision",
-         publishes=_topics("telemetry"), subscribes=_topics("setpoint", "state"), enabled_by="mavlink_vehicle"),
+         "setpoints → PX4 offboard attitude through MAVSDK; vehicle telemetry back; mocap → external vision; the "
+         "preflight verdict (no arming on a no-go)",
+         publishes=_topics("telemetry", "preflight"), subscribes=_topics("setpoint", "state", "network"),
+         enabled_by="mavlink_vehicle"),
     Role("dashboard", "dashboard.service", "operator's web dashboard (viser): watches every vehicle, steers by "
          "parameters and commands", publishes={}, subscribes={}, per_vehicle=False, enabled_by="dashboard",
          watches=("state", "truth", "estimate", "setpoint", "reference", "telemetry", "recording", "network",
-                  "replay"),
+                  "replay", "preflight"),
          identity="operator"),
 )
 

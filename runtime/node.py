@@ -24,8 +24,8 @@ from runtime.bus import BusConfig, close_session, open_session, publisher_qos
 from runtime.graph import ROLES, role as graph_role
 from runtime.health import HealthStats
 from runtime.params import ParamSet
-from runtime.schema import (OFFER_COMMANDS, CommandReply, CommandRequest, EventMsg, Keys, Message, ParamReply,
-                            ParamRequest, ParamStateMsg, SchemaError)
+from runtime.schema import (OFFER_COMMANDS, CommandReply, CommandRequest, EventMsg, HealthMsg, Keys, Message,
+                            ParamReply, ParamRequest, ParamStateMsg, SchemaError)
 from runtime.signals import POLL_S, Signalled
 
 HEALTH_PERIOD_S = 1.0
@@ -155,6 +155,27 @@ class Node:
             self._handle("params handler", handler, dict(msg.values))
 
         self._declared.append(self.session.declare_subscriber(self.keys.params(service), on_sample))
+
+    def subscribe_health(self, handler: Callable[[str, HealthMsg, float], None]) -> None:
+        """Call ``handler(service, health, received_monotonic_s)`` under the node lock for every service's 1 Hz
+        health report of this vehicle (what a watcher needs to tell whether the bus and every service are up);
+        invalid reports are counted."""
+
+        def on_sample(sample) -> None:
+            received = time.monotonic()
+            try:
+                msg = HealthMsg.from_bytes(sample.payload.to_bytes())
+            except SchemaError as exc:
+                self.stats.reject("health", str(exc))
+                return
+            self._handle("health handler", handler, msg.service, msg, received)
+
+        self._declared.append(self.session.declare_subscriber(self.keys.every("health"), on_sample))
+
+    def alive_services(self, timeout_s: float = 0.5) -> set[str]:
+        """The services of this vehicle whose liveliness token is on the bus now (asked, at most ``timeout_s``)."""
+        replies = self.session.liveliness().get(self.keys.every("alive"), timeout=timeout_s)
+        return {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
 
     def _handle(self, what: str, handler: Callable, *args) -> None:
         """A bus handler under the node lock, guarded; none once the node is closing."""

@@ -12,6 +12,7 @@ Keys (one vehicle ``<v>``; several vehicles share a bus under their own prefixes
 ``neso/<v>/recording``                RecordingMsg     recorder → anyone watching
 ``neso/<v>/network``                  NetworkMsg       estimator → anyone watching (active/candidate)
 ``neso/<v>/replay``                   ReplayMsg        ``neso replay --to-bus`` → anyone watching (not live)
+``neso/<v>/preflight``                PreflightMsg     px4_gateway → anyone watching: may the vehicle arm
 ``neso/<v>/event/<service>``          EventMsg         what a service wants an operator to know
 ``neso/<v>/health/<service>``         HealthMsg        1 Hz: rate, latency, rejected, staleness
 ``neso/<v>/alive/<service>``          (liveliness)     token while the service runs
@@ -298,7 +299,11 @@ _ACC = _vector(3, LIMIT_MPS2)
 @dataclass(frozen=True, slots=True)
 class StateMsg(Message):
     """A state sample (ENU, SI). ``source``: ``sim``, ``mocap``, ``replay`` (published again from a
-    recording) or ``px4`` (PX4's own estimate, imported from its flight log)."""
+    recording) or ``px4`` (PX4's own estimate, imported from its flight log). ``t_s``: the source's clock (the
+    world's time; a motion-capture frame's own capture time); ``capture_stamp_s``: the pose's capture on the
+    source machine's monotonic clock
+    (``stamp_s``'s; 0: unknown), so ``stamp_s - capture_stamp_s`` is how old the pose was when published (the
+    world's or Motive's exposure to the bus), which the PX4 gateway carries into ODOMETRY's ``time_usec``."""
 
     TYPE: ClassVar[str] = "state"
     seq: int = f(_SEQ)
@@ -310,6 +315,7 @@ class StateMsg(Message):
     pitch_rad: float = f(_ANGLE)
     yaw_rad: float = f(_ANGLE)
     source: str = f(_text(STATE_SOURCES))
+    capture_stamp_s: float = f(_STAMP, default=0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -560,6 +566,36 @@ class ReplayMsg(Message):
     playing: bool = f(_flag)
 
 
+PREFLIGHT_VERDICTS = ("go", "no-go", "warning")
+
+
+def _preflight_items(x: Any) -> dict:
+    """``{item: [verdict, what was found, the fix]}`` (the fix empty when it is fine), at most 64 items."""
+    items = _mapping(x)
+    if len(items) > 64:
+        raise SchemaError(f"{len(items)} preflight items, at most 64")
+    for name, entry in items.items():
+        if (not isinstance(entry, list) or len(entry) != 3 or entry[0] not in PREFLIGHT_VERDICTS
+                or not all(isinstance(v, str) and len(v) <= 512 for v in entry)):
+            raise SchemaError(f"preflight item {name!r}: expected [verdict, found, fix] texts, verdict one of "
+                              f"{PREFLIGHT_VERDICTS}")
+    return items
+
+
+@dataclass(frozen=True, slots=True)
+class PreflightMsg(Message):
+    """The px4_gateway's verdict on whether the vehicle may arm (:mod:`flight.preflight`), published after every
+    check and at 1 Hz: ``go`` (no item no-go), ``items`` (one per check, in order: ``[verdict, found, fix]``),
+    ``checked_s`` the monotonic time of the check, ``override``: why an operator armed on a no-go ("" none)."""
+
+    TYPE: ClassVar[str] = "preflight"
+    stamp_s: float = f(_STAMP)
+    checked_s: float = f(_STAMP)
+    go: bool = f(_flag)
+    items: dict = f(_preflight_items)
+    override: str = f(_text(max_len=512), default="")
+
+
 OFFER_COMMANDS = ("offer",)  # commands that travel on the ``offer`` key, not ``cmd``
 
 
@@ -576,6 +612,7 @@ TOPICS: dict[str, type[Message]] = {
     "recording": RecordingMsg,
     "network": NetworkMsg,
     "replay": ReplayMsg,
+    "preflight": PreflightMsg,
 }
 # The control loop's streams (source → estimator → controller → source/vehicle): with the bus's
 # priorities on (runtime.bus.BusConfig.priorities) they travel at Zenoh's real-time priority.

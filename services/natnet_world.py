@@ -10,6 +10,8 @@ the scenario's ``sim.mocap.MocapConfig``, its rate too unless ``--natnet-rate``)
 plus that latency (:class:`sim.natnet_server.WorldStream`), through the jitter, dropouts and lost
 windows of ``--natnet-*``. With ``--natnet-feed`` (several vehicles, one Motive) the world runs no server: it
 feeds its samples to the shared simulated Motive (:class:`sim.natnet_server.FeedStream`, ``sim/natnet_motive.py``).
+With ``--link mavlink`` the world is also the simulated PX4 (sim/mavlink_vehicle.py) that the px4_gateway flies,
+as the source's own ``--link mavlink`` does: a PX4 vehicle in a room with OptiTrack.
 """
 from __future__ import annotations
 
@@ -17,10 +19,20 @@ import signal
 import time
 
 from flight.source import SimSource, SourceConfig
-from runtime.schema import SetpointMsg
+from runtime.schema import SetpointMsg, state_measurement
 from sim.natnet_server import FeedStream, NatNetServer, NatNetServerConfig, StreamModel, WorldStream
 
 BODY_ID = 1
+
+
+def _mavlink_vehicle(config: SourceConfig, core: SimSource):
+    """``--link mavlink``: the world presents itself as a PX4 on ``--mavlink-out`` (sim/mavlink_vehicle.py), flown by
+    the px4_gateway; what it prints on its console goes to this process's output as the source's."""
+    from sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+
+    return MavlinkVehicle(VehicleConfig(target=config.mavlink_out, log_path=config.mavlink_log,
+                                        hover_thrust_norm=core.sim.config.params.hover_thrust_norm),
+                          dt_s=1.0 / config.rate_hz, console=lambda text: print(f"[source] {text}", flush=True))
 
 
 def stream_model(config: SourceConfig, latency_s: float) -> StreamModel:
@@ -39,7 +51,9 @@ def run_world(conn, config: SourceConfig) -> None:
     nn = config.natnet
     model = stream_model(config, core.scenario.mocap.latency_s)
     server = None if nn.feed_port else NatNetServer(NatNetServerConfig(
-        bodies={config.mocap.rigid_body: BODY_ID}, command_port=nn.port, data_port=nn.port + 1)).start()
+        bodies={config.mocap.rigid_body: BODY_ID}, command_port=nn.port, data_port=nn.port + 1,
+        version=nn.version_tuple())).start()
+    vehicle = _mavlink_vehicle(config, core) if config.link == "mavlink" else None
     stream = None
     try:
         anchor_s = time.monotonic() - core.sim.t_s
@@ -53,8 +67,13 @@ def run_world(conn, config: SourceConfig) -> None:
                 data = conn.recv_bytes()
                 if not data:
                     return
-                core.take(SetpointMsg.from_bytes(data))
-            _, truth = core.step()
+                if vehicle is None:  # a MAVLink vehicle flies what the gateway sends it, not the bus's setpoints
+                    core.take(SetpointMsg.from_bytes(data))
+            if vehicle is not None:
+                core.setpoint = vehicle.control(core.sim._measurement(), on_ground=bool(core.sim.truth.on_ground))
+            state, truth = core.step()
+            if vehicle is not None:
+                vehicle.publish(state_measurement(state), t_s=truth.t_s)
             for s in samples:
                 stream.sample(s.t_s, s.pos_enu_m, (s.roll_rad, s.pitch_rad, s.yaw_rad))
             samples.clear()
@@ -69,6 +88,8 @@ def run_world(conn, config: SourceConfig) -> None:
     except (EOFError, BrokenPipeError, OSError):
         return
     finally:
+        if vehicle is not None:
+            vehicle.close()
         if server is not None:
             server.close()
         elif stream is not None:

@@ -26,10 +26,13 @@ The step object (:class:`GatewayCore`) never sees MAVSDK or Zenoh:
 The adapter connects MAVSDK to ``--mavlink`` (``udpin://0.0.0.0:14540`` for PX4 SITL or a
 companion link), streams each setpoint with ``Offboard.set_attitude`` as it arrives (MAVSDK
 re-sends the last one at 20 Hz), answers ``arm disarm takeoff land hold offboard_start
-offboard_stop calibrate_hover`` commands with the vehicle's acknowledgement, publishes
+offboard_stop calibrate_hover preflight param_set`` commands with the vehicle's acknowledgement in words, publishes
 TelemetryMsg at 10 Hz, and forwards the bus state (motion capture) to PX4 as external-vision
-ODOMETRY; while no state has come for ``pose_lost_after_s`` it repeats the last pose at 50 Hz with quality -1
-(MAVLink's "odometry has failed"), so that PX4 knows the motion capture is lost rather than late.
+ODOMETRY stamped with the pose's capture (answering PX4's TIMESYNC so that it can use that time); while no state has
+come for ``pose_lost_after_s`` it repeats the last pose at 50 Hz with quality -1 (MAVLink's "odometry has failed"),
+so that PX4 knows the motion capture is lost rather than late. Every second it judges whether the vehicle may arm
+(:mod:`flight.preflight`, :mod:`services.px4_preflight`), publishes the verdict and refuses ``arm`` on a no-go unless
+the operator overrides it; it gives the vehicle a global origin only when it reports none.
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,14 +51,31 @@ from neso.frames import (NED_FROM_ENU, attitude_enu_from_ned, attitude_ned_from_
 from neso.types import GRAVITY_MPS2, LOOP_PERIOD_S
 from runtime.options import add_options, comma_list, config_from_options, option
 from runtime.schema import SetpointMsg, StateMsg, TelemetryMsg
+from services.px4_preflight import (FAST_TIMESYNC_HZ, MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+                                   GatewayPreflight, TimeSync)
 
 # modes in which the vehicle flies (or waits) on its own, or not reported yet: setpoints are withheld (see _may_stream)
 VEHICLE_OWN_MODES = ("UNKNOWN", "HOLD", "LAND", "RETURN_TO_LAUNCH", "TAKEOFF", "MISSION", "FOLLOW_ME", "POSCTL",
                      "ALTCTL", "STABILIZED", "MANUAL", "ACRO", "RATTITUDE")
-COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover")
+COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "offboard_start", "offboard_stop", "calibrate_hover",
+            "preflight", "param_set")
 # PX4 SITL's default home (PX4_HOME_LAT, PX4_HOME_LON, PX4_HOME_ALT in PX4-Autopilot's SITL start scripts): deg, deg, m
 PX4_SITL_HOME_LLA = (47.397742, 8.545594, 488.0)
 MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_FRD, MAV_ESTIMATOR_TYPE_VISION = 1, 12, 2  # MAVLink common.xml
+# ESTIMATOR_STATUS_FLAGS (common.xml): attitude, horizontal velocity, relative horizontal and absolute vertical
+# position (EKF2 sets CONST_POS_MODE, 128, also for a vehicle at rest: ekf_helper.cpp get_ekf_soln_status)
+EKF_LOCAL_POSITION = 1 | 2 | 8 | 32
+
+
+# MAVSDK's ActionResult / OffboardResult names (what the vehicle's COMMAND_ACK said) in words
+REFUSALS = {
+    "COMMAND_DENIED": "PX4 denied it", "BUSY": "PX4 is busy (temporarily rejected)",
+    "TEMPORARILY_REJECTED": "PX4 rejected it for now", "COMMAND_DENIED_NOT_LANDED": "PX4 does not do it in the air",
+    "COMMAND_DENIED_LANDED_STATE_UNKNOWN": "PX4 does not know whether it is landed", "TIMEOUT": "no answer from PX4",
+    "NO_SYSTEM": "no vehicle", "CONNECTION_ERROR": "the link to the vehicle is down",
+    "UNSUPPORTED": "PX4 does not support it", "FAILED": "PX4 tried and failed", "NO_SETPOINT_SET":
+    "no setpoint streamed yet",
+}
 
 
 def parse_lla(text: str) -> tuple[float, ...]:
@@ -97,15 +118,31 @@ class GatewayConfig:
     hold_confirm_s: float = 1.0  # the failsafe's hold commanded and the vehicle still in offboard this long: land
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
-    pose_lost_after_s: float = option(0.1, flag="--pose-lost-after", unit="s",
+    # 0.3 s: longer than the gaps a wireless link has in normal use, so one of them is not taken for a lost motion
+    # capture (which overrides the controller: level flight at hover thrust) — measured by others: UDP every 20 ms
+    # over Wi-Fi, 18 latency spikes above 100 ms in 10 min, 12 above 200 ms, one of 250 ms (C. Huitema, "The weird
+    # case of the wifi latency spikes", 2023); 99th percentile 250 ms over a campus network (Sui et al., MobiSys
+    # 2016); an access point's neighbour scan ~100 ms (dB Performance via SmallNetBuilder, "Wi-Fi Ping Spikes").
+    # Wired and on one machine the gaps are milliseconds (PLATFORM.md: Zenoh p99 0.3-6 ms; NatNet on loopback here
+    # 0 lost frames in 10 s). Blind for 0.3 s on the controller's last tilt (at most --max-tilt-deg) before level.
+    pose_lost_after_s: float = option(0.3, flag="--pose-lost-after", unit="s",
                                       help="without a forwarded state before PX4 is told the motion capture failed "
-                                           "(external-vision odometry quality -1)")
+                                           "(external-vision odometry quality -1) and the vehicle is flown level")
     global_origin: tuple[float, ...] = option(
         PX4_SITL_HOME_LLA, cli=(lambda lla: ",".join(str(v) for v in lla) or "none", parse_lla),
-        help="lat_deg,lon_deg,alt_m sent to the vehicle as its EKF's global origin (SET_GPS_GLOBAL_ORIGIN) until it "
-             "reports it: indoors, without GPS, PX4 has a global position only from it, and its Hold, and arming "
-             "in Hold, need one (default: PX4 SITL's home; a lab gives its own); 'none': not sent (a vehicle with GPS)")
+        help="lat_deg,lon_deg,alt_m sent to a vehicle that reports no global origin as its EKF's (SET_GPS_GLOBAL_ORIGIN) "
+             "until it reports one: indoors, without GPS, PX4 has a global position only from it, and its Hold, and "
+             "arming in Hold, need one; a vehicle with an origin keeps its own (default: PX4 SITL's home; a lab gives "
+             "its own); 'none': never sent")
     origin_retry_s: float = 1.0
+    origin_probe_s: float = 2.0  # listening for an origin the vehicle has before sending ours
+    origin_tries: int = 30  # SET_GPS_GLOBAL_ORIGIN sent at most this often (then a warning)
+    # PX4 v1.16 SITL from its first external-vision sample to "Ready for takeoff!" (three ULogs: 1.93-1.94 s; the
+    # MAVLink imitation's ev_settle_s): how long a refused arm is told EKF2 may still take
+    ev_settle_s: float = 1.9
+    preflight_period_s: float = 1.0  # the verdict is judged and published this often
+    preflight_params_s: float = 10.0  # the vehicle's parameters are read again this often while it is disarmed
+    preflight_fresh_s: float = 3.0  # an arm command judges by a verdict at most this old (else it checks first)
     forward_sources: tuple[str, ...] = option(("mocap",), cli=comma_list(),
                                               help="state sources forwarded to PX4 as external vision (comma-separated; "
                                                    "'' none)")
@@ -140,6 +177,8 @@ class GatewayCore:
         self.last_pose_s: float | None = None
         self.pose_lost_since_s: float | None = None
         self.events: list[tuple[str, str]] = []
+        self._delays_s: deque[float] = deque(maxlen=250)  # the last 5 s at 50 Hz: capture → sent to PX4
+        self.pose_run_since_s: float | None = None  # the start of the current unbroken run of forwarded poses
 
     # -- setpoints ---------------------------------------------------------------------
     def on_setpoint(self, sp: SetpointMsg, now_s: float) -> Px4Attitude | None:
@@ -206,13 +245,54 @@ class GatewayCore:
         self.failsafe = ""
 
     # -- motion capture to PX4 -----------------------------------------------------------------
-    def on_pose(self, now_s: float) -> None:
-        """A state to forward to PX4 as external vision arrived at ``now_s``."""
+    def capture_s(self, state: StateMsg, received_s: float) -> float:
+        """When ``state``'s pose was captured, on this process's clock: its arrival ``received_s`` less the age the
+        source gave it (``stamp_s - capture_stamp_s``, machine-independent); its arrival when unknown."""
+        if state.capture_stamp_s <= 0.0:
+            return received_s
+        return received_s - max(0.0, state.stamp_s - state.capture_stamp_s)
+
+    def on_pose(self, now_s: float, capture_s: float | None = None) -> None:
+        """A state to forward to PX4 as external vision arrived at ``now_s``, its pose captured at ``capture_s``."""
+        if capture_s is not None:
+            self._delays_s.append(now_s - capture_s)
+        if self.pose_run_since_s is None or self.pose_lost_since_s is not None:
+            self.pose_run_since_s = now_s
         if self.pose_lost_since_s is not None:
             self.events.append(("info", f"motion capture back after {now_s - self.pose_lost_since_s:.2f} s: PX4 "
                                         "fuses it again (odometry quality 100)"))
             self.pose_lost_since_s = None
         self.last_pose_s = now_s
+
+    def delay_to_vehicle_ms(self, link_s: float = 0.0) -> tuple[float, float] | None:
+        """The motion capture's delay to the vehicle over the last 5 s (ms, p50 and p99): capture → sent here, plus
+        ``link_s`` (half the link's round trip); None before any pose."""
+        if not self._delays_s:
+            return None
+        d = sorted(self._delays_s)
+        p50, p99 = d[len(d) // 2], d[min(len(d) - 1, math.ceil(0.99 * len(d)) - 1)]
+        return (p50 + link_s) * 1e3, (p99 + link_s) * 1e3
+
+    def refusal(self, command: str, result: str, now_s: float, *, ready: bool | None, said: str = "") -> str:
+        """A command the vehicle refused, in words: what MAVSDK's ``result`` means, why when it can be told (an arm
+        before PX4's pre-arm checks pass: no external vision yet, or EKF2 still settling on it and about how long
+        more), and PX4's own words (``said``: its STATUSTEXT after the command)."""
+        words = REFUSALS.get(result, result.replace("_", " ").lower())
+        why = ""
+        if command in ("arm", "takeoff") and ready is not True:  # None: PX4 has not reported its checks yet
+            run = None if self.pose_run_since_s is None or self.pose_lost_since_s is not None else \
+                now_s - self.pose_run_since_s
+            settle = self.config.ev_settle_s
+            if run is None:
+                why = "not ready: PX4 gets no external vision (is the motion capture reaching the gateway?)"
+            elif run < settle:
+                why = (f"not ready: EKF2 settling on the motion capture, about {settle - run:.1f} s more ({run:.1f} s "
+                       f"of it so far; PX4 v1.16 took {settle:g} s in SITL)")
+            else:
+                why = (f"not ready after {run:.1f} s of motion capture (PX4 v1.16 took {settle:g} s in SITL): "
+                       "`neso preflight` for what fails")
+        return f"{command} refused by the vehicle: {words}" + (f"; {why}" if why else "") + (
+            f"; PX4 says: {said}" if said else "")
 
     def level_setpoint(self) -> Px4Attitude | None:
         """What to fly while the motion capture is lost, or while a failsafe's mode is not taken yet: level, at the
@@ -277,6 +357,11 @@ class GatewayCore:
         self.events.append(("info", f"hover thrust calibrated: {self.hover_thrust_norm:.4f} from {len(samples)} samples"))
 
 
+def _is_warning(status_text: str) -> bool:
+    """A STATUSTEXT as the gateway keeps it (``SEVERITY: text``) of severity warning or worse."""
+    return status_text.split(":")[0] in ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")
+
+
 def _scale_tilt(roll: float, pitch: float, max_tilt: float) -> tuple[float, float]:
     """Roll and pitch scaled by a common factor so the tilt is ``max_tilt`` (bisection; direction kept)."""
     lo, hi = 0.0, 1.0
@@ -332,13 +417,17 @@ class Px4Link:
         self.core = GatewayCore(config)
         self.tele = {"armed": None, "in_air": False, "mode": "UNKNOWN", "att": (0.0, 0.0, 0.0),
                      "pos_ned": (0.0, 0.0, 0.0), "vel_ned": (0.0, 0.0, 0.0), "battery_v": 0.0, "battery": -1.0,
-                     "autopilot": "", "status_text": ""}
+                     "autopilot": "", "status_text": "", "local_position_ok": None, "armable": None}
         self.system = self.action = self.offboard = self.direct = None
         self.system_id = 0
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
+        self.last_pose_capture_s = 0.0  # its capture on this process's clock (ODOMETRY time_usec)
         self.actions: queue.Queue = queue.Queue()
         self.said: queue.Queue = queue.Queue()  # PX4's words not yet on the bus, in order (each gets a message)
+        self.param = self.timesync = None
+        self.preflight = GatewayPreflight(self)
+        self.heard: deque[tuple[float, str]] = deque(maxlen=20)  # PX4's STATUSTEXT, with its arrival (preflight's)
 
     # -- life ----------------------------------------------------------------------------
     def run(self) -> None:
@@ -352,10 +441,13 @@ class Px4Link:
             node.log(f"MAVLink connection {self.config.mavlink}: {result}")
             node.subscribe("setpoint", self._on_setpoint)
             node.subscribe("state", self._on_state)
+            node.subscribe("network", self.preflight.watch.on_network)
+            node.subscribe_health(self.preflight.watch.on_health)
             node.on_command(self._on_command, unlocked=COMMANDS)
             node.status_hook = self._status
             threading.Thread(target=self._telemetry_loop, name="px4-telemetry", daemon=True).start()
             threading.Thread(target=self._watchdog_loop, name="px4-watchdog", daemon=True).start()
+            threading.Thread(target=self.preflight.loop, name="px4-preflight", daemon=True).start()
             self._connect()
             while not node.stopping:
                 try:
@@ -365,13 +457,16 @@ class Px4Link:
                 done(self._do(what))
         finally:
             with node.lock:  # no bus handler may reach a MAVSDK plugin once it is destroyed
-                self.system = self.action = self.offboard = self.direct = None
+                self.system = self.action = self.offboard = self.direct = self.param = None
+            if self.timesync is not None:
+                self.timesync.close()
             self.mavsdk.destroy()
 
     def _connect(self) -> None:
         from mavsdk.plugins.action import Action
         from mavsdk.plugins.mavlink_direct import MavlinkDirect
         from mavsdk.plugins.offboard import Offboard
+        from mavsdk.plugins.param import Param
         from mavsdk.plugins.telemetry import Telemetry
 
         deadline = time.monotonic() + self.config.connect_timeout_s
@@ -397,18 +492,33 @@ class Px4Link:
             vel_ned=(v.velocity.north_m_s, v.velocity.east_m_s, v.velocity.down_m_s)))
         tele.subscribe_battery(lambda v, _: t.update(battery_v=v.voltage_v, battery=v.remaining_percent / 100.0))
         tele.subscribe_status_text(self._on_status_text)
+        tele.subscribe_health(lambda v, _: t.update(armable=v.is_armable))
+        self._estimator_status = self.direct.subscribe_message("ESTIMATOR_STATUS", self._on_estimator_status)
         t["mode"] = tele.flight_mode().name  # MAVSDK calls subscribers on a change only; its mode here is the vehicle's
         threading.Thread(target=self._ask_version, args=(system,), name="px4-version", daemon=True).start()
         if len(self.config.global_origin) == 3:
             threading.Thread(target=self._set_global_origin, name="px4-origin", daemon=True).start()
+        self.param = Param(system)
+        self.timesync = TimeSync(self.direct, self.system_id, self.node.log)
+        self.timesync.request_rate(FAST_TIMESYNC_HZ)
         self.telemetry = tele
         self.system = system
         self.node.event("info", f"connected to autopilot system {self.system_id} on {self.config.mavlink}")
+
+    def _on_estimator_status(self, message, _user) -> None:
+        """EKF2's solution flags (ESTIMATOR_STATUS, 1 Hz on PX4's onboard link): whether it has a local position.
+        MAVSDK's ``health.is_local_position_ok`` cannot tell: PX4 v1.16 reports no vision sensor in SYS_STATUS, and
+        MAVSDK takes GPS, flow or vision from there (telemetry_impl.cpp)."""
+        import json
+
+        flags = int(json.loads(message.fields_json).get("flags", 0))
+        self.tele["local_position_ok"] = flags & EKF_LOCAL_POSITION == EKF_LOCAL_POSITION
 
     def _on_status_text(self, v, _) -> None:
         """PX4's own words (arming refusals, failsafes, landing): each on the telemetry at once, and in the log."""
         text = f"{v.type.name}: {v.text.strip()}"[:160]
         self.said.put(text)
+        self.heard.append((time.monotonic(), text))
         self.node.log(f"vehicle says {text}")
 
     def _ask_version(self, system) -> None:
@@ -421,40 +531,63 @@ class Px4Link:
         self.node.event("info", f"autopilot: {self.tele['autopilot']}")
 
     def _set_global_origin(self) -> None:
-        """SET_GPS_GLOBAL_ORIGIN (MAVSDK's MavlinkDirect) every ``origin_retry_s`` until the vehicle's
-        GPS_GLOBAL_ORIGIN reports it (PX4 answers one after each: mavlink_receiver.cpp; EKF2 takes it in
-        setEkfGlobalOrigin, and its global position is then valid whenever its local one is: ekf.h)."""
+        """The vehicle's EKF global origin, only when it has none: first asked for (REQUEST_MESSAGE
+        GPS_GLOBAL_ORIGIN; PX4 answers only with a valid origin, GPS_GLOBAL_ORIGIN.hpp) and listened for
+        ``origin_probe_s``: a vehicle that has one (its GPS's, or one set before this gateway started) keeps it and
+        none is sent. Else SET_GPS_GLOBAL_ORIGIN (MAVSDK's MavlinkDirect) every ``origin_retry_s`` until the vehicle
+        reports an origin (PX4 answers one after each once it has a local position: mavlink_receiver.cpp; EKF2 takes
+        it in setEkfGlobalOrigin), at most ``origin_tries`` times: then a warning, never an endless retry."""
         import json
 
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         lat_deg, lon_deg, alt_m = self.config.global_origin
         wanted = (round(lat_deg * 1e7), round(lon_deg * 1e7))
-        reported = threading.Event()
+        reported: list[tuple[int, int, int]] = []
+        heard = threading.Event()
 
         def on_origin(message, _user) -> None:
             fields = json.loads(message.fields_json)
-            if (fields.get("latitude"), fields.get("longitude")) == wanted:
-                reported.set()
+            reported.append((fields.get("latitude"), fields.get("longitude"), fields.get("altitude", 0)))
+            heard.set()
+
+        def send(name: str, fields: dict) -> bool:
+            try:
+                direct.send_message(MavlinkMessage(name, target_system_id=self.system_id, fields_json=json.dumps(fields)))
+                return True
+            except Exception as exc:  # MavlinkDirectError: the link is not up yet; the next try may pass
+                self.node.log(f"{name} not sent: {exc}")
+                return False
 
         direct = self.direct
         handle = direct.subscribe_message("GPS_GLOBAL_ORIGIN", on_origin)
-        fields = {"target_system": self.system_id, "latitude": wanted[0], "longitude": wanted[1],
-                  "altitude": round(alt_m * 1e3), "time_usec": 0}
-        message = MavlinkMessage("SET_GPS_GLOBAL_ORIGIN", target_system_id=self.system_id,
-                                 fields_json=json.dumps(fields))
+        send("COMMAND_LONG", {"target_system": self.system_id, "target_component": 1,
+                              "command": MAV_CMD_REQUEST_MESSAGE, "confirmation": 0,
+                              "param1": MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, "param2": 0.0, "param3": 0.0, "param4": 0.0,
+                              "param5": 0.0, "param6": 0.0, "param7": 0.0})
         sent = 0
-        while not reported.is_set() and not self.node.stopping:
-            try:
-                direct.send_message(message)
-                sent += 1
-            except Exception as exc:  # MavlinkDirectError: the link is not up yet; the next try may pass
-                self.node.log(f"SET_GPS_GLOBAL_ORIGIN not sent: {exc}")
-            reported.wait(self.config.origin_retry_s)
+        if not heard.wait(self.config.origin_probe_s):
+            fields = {"target_system": self.system_id, "latitude": wanted[0], "longitude": wanted[1],
+                      "altitude": round(alt_m * 1e3), "time_usec": 0}
+            while not heard.is_set() and not self.node.stopping and sent < self.config.origin_tries:
+                sent += send("SET_GPS_GLOBAL_ORIGIN", fields)
+                heard.wait(self.config.origin_retry_s)
         direct.unsubscribe_message(handle)
-        if reported.is_set():
-            self.node.event("info", f"the vehicle's global origin is set: {lat_deg:.7f}°, {lon_deg:.7f}°, {alt_m:g} m "
-                                    f"({sent} SET_GPS_GLOBAL_ORIGIN sent)")
+        if not reported:
+            if not self.node.stopping:
+                self.node.event("warning", f"the vehicle reported no global origin after {sent} SET_GPS_GLOBAL_ORIGIN "
+                                           "(it reports one once EKF2 has a local position: is the motion capture "
+                                           "streaming?); without one PX4 refuses Hold. Restart the gateway to try again")
+            return
+        lat_e7, lon_e7, alt_mm = reported[0]
+        where = f"{lat_e7 / 1e7:.7f}°, {lon_e7 / 1e7:.7f}°, {alt_mm / 1e3:g} m"
+        if sent == 0:
+            self.node.event("info", f"the vehicle has a global origin already ({where}): kept, none sent")
+        elif (lat_e7, lon_e7) == wanted:
+            self.node.event("info", f"the vehicle's global origin is set: {where} ({sent} SET_GPS_GLOBAL_ORIGIN sent)")
+        else:
+            self.node.event("info", f"the vehicle reports its own global origin ({where}), not --global-origin's: "
+                                    f"kept ({sent} SET_GPS_GLOBAL_ORIGIN sent)")
 
     # -- bus inputs (under the node lock; never block) ----------------------------------------
     def _on_setpoint(self, msg: SetpointMsg, received_s: float) -> None:
@@ -487,12 +620,13 @@ class Px4Link:
     def _on_state(self, msg: StateMsg, received_s: float) -> None:
         self.core.on_state(msg, received_s, offboard=self.tele["mode"] == "OFFBOARD")
         if msg.source in self.config.forward_sources and self.direct is not None:
-            self.core.on_pose(received_s)
-            self.last_pose = msg
-            self._forward_pose(msg)
+            capture_s = self.core.capture_s(msg, received_s)
+            self.core.on_pose(received_s, capture_s)
+            self.last_pose, self.last_pose_capture_s = msg, capture_s
+            self._forward_pose(msg, capture_s)
         self._drain_events()
 
-    def _forward_pose(self, msg: StateMsg, quality_percent: int = 100) -> None:
+    def _forward_pose(self, msg: StateMsg, capture_s: float, quality_percent: int = 100) -> None:
         """The state as external vision, in the form PX4 v1.16's EKF2 fuses (mavlink_receiver.cpp,
         handle_message_odometry): ODOMETRY with estimator type VISION (MOCAP goes to vehicle_mocap_odometry, which
         EKF2 does not read), pose frame LOCAL_NED (MOCAP_NED is not among the frames it accepts: the position
@@ -502,7 +636,10 @@ class Px4Link:
         MavlinkDirect. Covariances unknown (NaN: EKF2 then uses EKF2_EVP_NOISE, EKF2_EVV_NOISE); body rates 0
         (MavlinkDirect takes no NaN for a single field; EKF2 does not read them). ``quality_percent``: 100 for a
         tracked pose, -1 ("odometry has failed") for the last one repeated while the motion capture is lost;
-        EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp)."""
+        EKF2 fuses none below EKF2_EV_QMIN (ev_control.cpp). ``time_usec``: the pose's capture ``capture_s`` on
+        this machine's monotonic clock, which PX4 converts into its own once its time sync with this gateway has
+        converged (:mod:`services.px4_preflight`; before, and with 0, it stamps the sample on arrival:
+        mavlink_receiver.cpp, Timesync::sync_stamp)."""
         import json
 
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
@@ -511,7 +648,8 @@ class Px4Link:
         q = quat_ned_from_enu_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
         v_frd = matrix_from_quat(q).T @ (NED_FROM_ENU @ np.asarray(msg.vel_enu_mps, dtype=float))
         unknown = ["NaN"] + [0.0] * 20
-        fields = {"time_usec": 0, "frame_id": MAV_FRAME_LOCAL_NED, "child_frame_id": MAV_FRAME_BODY_FRD,
+        fields = {"time_usec": round(capture_s * 1e6), "frame_id": MAV_FRAME_LOCAL_NED,
+                  "child_frame_id": MAV_FRAME_BODY_FRD,
                   "x": y, "y": x, "z": -z, "q": [float(v) for v in q],
                   "vx": float(v_frd[0]), "vy": float(v_frd[1]), "vz": float(v_frd[2]),
                   "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0, "pose_covariance": unknown,
@@ -527,8 +665,17 @@ class Px4Link:
         if name == "calibrate_hover":
             with self.node.lock:
                 return self.core.start_calibration(time.monotonic())
+        if name == "preflight":  # a fresh check, the vehicle's parameters read again (seconds: off the worker)
+            verdict = self.preflight.check(read_params=True)
+            return verdict.go, verdict.table()
         if self.system is None:
             return False, f"no vehicle connected on {self.config.mavlink}"
+        if name == "arm":
+            refusal = self.preflight.arm_gate(args.get("override") is True)
+            if refusal:
+                return False, refusal
+        if name == "param_set":
+            return self.preflight.param_set(args)
         done = threading.Event()
         answer: list = []
         self.actions.put((name, lambda result: (answer.append(result), done.set())))
@@ -538,6 +685,7 @@ class Px4Link:
 
     # -- the worker (blocking MAVSDK calls) ----------------------------------------------------
     def _do(self, name: str) -> tuple[bool, str]:
+        started_s = time.monotonic()
         try:
             if name == "offboard_start":
                 with self.node.lock:
@@ -558,7 +706,24 @@ class Px4Link:
                 getattr(self.action, name)()
             return True, f"{name}: accepted by the vehicle"
         except Exception as exc:  # MAVSDK raises ActionError/OffboardError with the vehicle's result
-            return False, f"{name}: {type(exc).__name__}: {exc}"
+            result = getattr(getattr(exc, "result", None), "name", f"{type(exc).__name__}: {exc}")
+            said = self._said_since(started_s)
+            with self.node.lock:
+                return False, self.core.refusal(name, result, time.monotonic(), ready=self.tele["armable"], said=said)
+
+    def px4_warning(self) -> str:
+        """PX4's newest warning or worse (its arming refusals and failed checks), "" when none came."""
+        return next((text for _, text in reversed(self.heard) if _is_warning(text)), "")
+
+    def _said_since(self, since_s: float, wait_s: float = 0.5) -> str:
+        """PX4's newest warning or worse (STATUSTEXT) after ``since_s`` (it follows a refusal's COMMAND_ACK: waited
+        up to ``wait_s``)."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            said = [text for t, text in self.heard if t >= since_s and _is_warning(text)]
+            if said or time.monotonic() >= deadline:
+                return said[-1] if said else ""
+            time.sleep(0.02)
 
     # -- loops ---------------------------------------------------------------------------
     def _watchdog_loop(self) -> None:
@@ -568,7 +733,7 @@ class Px4Link:
                 action = self.core.check_stale(now, offboard=self.tele["mode"] == "OFFBOARD", armed=self.tele["armed"])
                 pose_failed = self.core.pose_failed(now) and self.direct is not None and self.last_pose is not None
                 if pose_failed:
-                    self._forward_pose(self.last_pose, quality_percent=-1)  # at the watchdog's 50 Hz
+                    self._forward_pose(self.last_pose, self.last_pose_capture_s, quality_percent=-1)  # at 50 Hz
                     self.core.counts["pose_failed_sent"] += 1
                 if (pose_failed or self.core.failsafe) and self.offboard is not None and self.tele["mode"] == "OFFBOARD":
                     level = self.core.level_setpoint()

@@ -1,5 +1,6 @@
 """``source`` on the bus: the thin adapter around :class:`flight.source.SimSource` and
-:class:`flight.source.MocapSource` (what each does is documented in :mod:`flight.source`).
+:class:`flight.source.MocapSource` (what each does is documented in :mod:`flight.source`); the motion-capture
+paths are in :mod:`services.mocap_source`.
 
 Real time: one sample every period on the wall clock, the newest setpoint acts; lockstep: sample k+1
 once setpoint k has arrived. Command ``scenario`` restarts the world as a new flight.
@@ -7,7 +8,6 @@ once setpoint k has arrived. Command ``scenario`` restarts the world as a new fl
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 import threading
@@ -15,9 +15,7 @@ import time
 from dataclasses import replace
 
 from flight.deadline import DeadlineWatch
-import numpy as np
-
-from flight.source import MocapSource, SimSource, SourceConfig, frame_matrix
+from flight.source import SimSource, SourceConfig, frame_matrix
 from runtime.options import add_options, config_from_options
 from runtime.schema import SetpointMsg, StateMsg
 
@@ -34,27 +32,53 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     config = config_from_args(args)
-    node = Node("source", vehicle=args.vehicle, bus=bus, config=config)
+
+    def node(description: dict[str, str]):
+        return Node("source", vehicle=args.vehicle, bus=bus, config=config, params=description_params(description))
+
     if config.backend == "mocap":
-        frame_matrix(config.mocap.frame)  # refuse a bad frame before joining the bus
-        return run_node(node, lambda n: _run_mocap(n, config))
+        from services.mocap_source import natnet_description, natnet_offer, run_mocap
+
+        frame_matrix(config.mocap.frame)  # refused before joining the bus, as are a server that does not answer
+        offer = natnet_offer(config.mocap) if config.mocap.type == "optitrack" else None  # and a wrong rigid body
+        description = (natnet_description(offer, config.mocap.rigid_body) if offer is not None else
+                       {"kind": config.mocap.type, "server": config.mocap.hostname, "rigid_body": config.mocap.rigid_body})
+        return run_node(node(description), lambda n: run_mocap(n, config, offer=offer))
     if config.mocap_stream == "natnet":
         problem = natnet_refusal(config)  # refused before joining the bus: one line, exit 2
         if problem:
             print(f"source: {problem}", file=sys.stderr, flush=True)
             raise SystemExit(2)
-        return run_node(node, lambda n: _run_sim_natnet(n, config))
+        from services.mocap_source import natnet_description, natnet_offer, run_sim_natnet, start_world, world_mocap
+
+        world = start_world(config)
+        offer = natnet_offer(world_mocap(config, world[2]))
+        description = natnet_description(offer, config.mocap.rigid_body, scenario=config.scenario, link=config.link,
+                                         world="simulated (sim/natnet_server.py)")
+        return run_node(node(description), lambda n: run_sim_natnet(n, config, world, offer))
+    description = {"kind": "sim", "scenario": config.scenario, "link": config.link}
     if config.link == "mavlink":
         if config.lockstep:
             raise SystemExit("source: --link mavlink runs in real time only (MAVSDK streams on its own clock)")
-        return run_node(node, lambda n: _run_sim_mavlink(n, config))
+        return run_node(node(description), lambda n: _run_sim_mavlink(n, config))
     if config.link == "px4":
         if config.lockstep:
             raise SystemExit("source: --link px4 runs in real time only (PX4 and MAVSDK keep wall-clock timeouts)")
         from services.px4_world import px4_in_the_loop
 
-        return run_node(node, lambda n: _run_sim(n, config, world=lambda sim: px4_in_the_loop(n, config, sim)))
-    return run_node(node, lambda n: _run_sim(n, config))
+        return run_node(node(description),
+                        lambda n: _run_sim(n, config, world=lambda sim: px4_in_the_loop(n, config, sim)))
+    return run_node(node(description), lambda n: _run_sim(n, config))
+
+
+def description_params(description: dict[str, str]):
+    """Where the states come from, as the source's read-only parameters (``neso params get source``; the recorder
+    keeps them with every flight): each a text parameter whose only allowed value is its own."""
+    from runtime.params import Param, ParamSet
+
+    specs = tuple(Param(k, str(v), str, "where the states come from (read only)", choices=(str(v),))
+                  for k, v in description.items())
+    return ParamSet(specs, check=lambda _: "the source's description is read only")
 
 
 def _run_sim(node, config: SourceConfig, world=None) -> None:
@@ -209,8 +233,8 @@ def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) ->
 
 def natnet_refusal(config: SourceConfig) -> str:
     """Why ``--mocap-stream natnet`` cannot run with ``config`` (one line), or ""."""
-    if config.lockstep or config.link == "mavlink":
-        return "--mocap-stream natnet runs in real time with --link direct only"
+    if config.lockstep or config.link == "px4":
+        return "--mocap-stream natnet runs in real time with --link direct or mavlink only"
     try:
         config.natnet.lost_windows()
     except ValueError as exc:
@@ -219,161 +243,3 @@ def natnet_refusal(config: SourceConfig) -> str:
     if rate and not (100 <= rate <= 360 and rate == int(rate)):
         return f"--natnet-rate {rate:g}: a whole number of Hz in 100-360 (0: the world's)"
     return ""
-
-
-def _run_sim_natnet(node, config: SourceConfig) -> None:
-    """The world in a child process (services/natnet_world.py) streams NatNet on loopback; this process
-    reads it exactly as in a lab (:func:`_run_mocap`, the motioncapture optitrack client), forwards the
-    setpoints to the world and publishes the world's truth."""
-    import multiprocessing
-
-    from runtime.schema import TruthMsg
-    from services.natnet_world import run_world
-
-    ctx = multiprocessing.get_context("spawn")
-    conn, child_conn = ctx.Pipe()
-    world = ctx.Process(target=run_world, args=(child_conn, config), name="natnet-world", daemon=True)
-    world.start()
-    if not conn.poll(60.0):
-        raise SystemExit("source: the simulated Motive did not start within 60 s")
-    _, port = conn.recv()
-    put_truth = node.publisher("truth")
-    send_lock = threading.Lock()
-
-    def on_setpoint(msg: SetpointMsg, received_s: float) -> None:
-        with send_lock:
-            conn.send_bytes(msg.to_bytes())
-
-    def relay_truth() -> None:
-        try:
-            while True:
-                put_truth(TruthMsg.from_bytes(conn.recv_bytes()))
-        except (EOFError, OSError):
-            return
-
-    node.subscribe("setpoint", on_setpoint)
-    threading.Thread(target=relay_truth, name="truth", daemon=True).start()
-    mocap = replace(config.mocap, type="optitrack", hostname="127.0.0.1", port=port, interface="127.0.0.1",
-                    frame={"y": "y_up", "z": "enu"}[config.natnet.up_axis])
-    node.event("info", f"state from NatNet: simulated world → simulated Motive (NatNet 4.1, 127.0.0.1:{port}, "
-                       f"{config.natnet.up_axis}-up) → motioncapture optitrack client → this source")
-    n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
-    try:
-        _run_mocap(node, replace(config, mocap=mocap), n_total=n_total)
-    finally:
-        with send_lock, contextlib.suppress(OSError):  # the world may have gone already
-            conn.send_bytes(b"")
-        world.join(timeout=3.0)
-        if world.is_alive():
-            world.terminate()
-
-
-def natnet_rigid_bodies(host: str, port: int, timeout_s: float = 2.0) -> tuple[tuple[int, ...], list[str]]:
-    """(NatNet version, rigid-body names) a NatNet server at ``host:port`` streams: asked as its clients
-    ask (NAT_CONNECT, NAT_REQUEST_MODELDEF). ``SystemExit`` with one line when nobody answers."""
-    import socket
-
-    from sim import natnet
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.settimeout(timeout_s)
-        try:
-            s.sendto(natnet.packet(natnet.NAT_CONNECT), (host, port))
-            info = natnet.parse_server_info(natnet.split(s.recv(65536))[1])
-            s.sendto(natnet.packet(natnet.NAT_REQUEST_MODELDEF), (host, port))
-            message_id, payload = natnet.split(s.recv(65536))
-            if message_id != natnet.NAT_MODELDEF:
-                raise natnet.NatNetError(f"message {message_id} in answer to NAT_REQUEST_MODELDEF")
-        except (OSError, natnet.NatNetError) as exc:
-            raise SystemExit(f"source: no NatNet server answered at {host}:{port} ({exc}); is Motive streaming "
-                             "(Edit → Settings → Streaming: Enable) and is this the command port?") from None
-    names = list(natnet.parse_rigid_body_names(payload).values()) if info.natnet_version[:2] == (4, 1) else []
-    return info.natnet_version, names
-
-
-def _run_mocap(node, config: SourceConfig, *, n_total: int | None = None) -> None:
-    """Frames from the motioncapture library on a thread of their own (``waitForNextFrame`` blocks); this
-    thread watches the stream: no frame for ``stream_timeout_s`` is a stopped stream, frames without the
-    rigid body are a lost rigid body (each an event when it starts and when it ends, frames counted in
-    health). ``n_total``: stop after that many states."""
-    import motioncapture
-
-    mc_config = config.mocap
-    core = MocapSource(mc_config, config.rate_hz, clock=time.monotonic)
-    put_state = node.publisher("state")
-    name = mc_config.rigid_body
-    where = f"{mc_config.hostname}:{mc_config.port}" if mc_config.type == "optitrack" else mc_config.hostname
-    options = {"hostname": mc_config.hostname}
-    if mc_config.type == "optitrack":
-        version, streamed = natnet_rigid_bodies(mc_config.hostname, mc_config.port)
-        if streamed and name not in streamed:
-            print(f"source: rigid body {name!r} is not streamed by the NatNet server at {where}; it streams "
-                  f"{streamed} (--rigid-body, or Motive's Assets pane: the rigid body's name and Streaming on)",
-                  file=sys.stderr, flush=True)
-            raise SystemExit(2)
-        node.log(f"NatNet {'.'.join(map(str, version))} at {where}, rigid bodies {streamed}")
-        options.update(port_command=str(mc_config.port), interface_ip=mc_config.interface)
-    node.log(f"connecting to {mc_config.type} at {where}, rigid body {name!r}, frame {mc_config.frame}")
-    mc = motioncapture.connect(mc_config.type, options)
-    seen = [0]
-    watch = {"last_frame_s": time.monotonic(), "stopped_since": None, "lost_since": None, "lost_frames": 0}
-
-    stopping = [False]
-
-    def read_frames() -> None:
-        while not node.stopping and not stopping[0]:
-            mc.waitForNextFrame()
-            now = time.monotonic()
-            body = mc.rigidBodies.get(name)
-            if stopping[0]:
-                return
-            with node.lock:
-                seen[0] += 1
-                watch["last_frame_s"] = now
-                if watch["stopped_since"] is not None:
-                    node.event("info", f"mocap stream from {where} back after {now - watch['stopped_since']:.2f} s")
-                    watch["stopped_since"] = None
-                if body is None:
-                    if core.seq >= 0:
-                        watch["lost_frames"] += 1
-                        node.stats.count("tracking_lost_frames")
-                        if watch["lost_since"] is None:
-                            watch["lost_since"] = now
-                            node.event("warning", f"rigid body {name!r} lost: frames come without it (not tracked); "
-                                                  "no state until it is back")
-                    continue
-                if watch["lost_since"] is not None:
-                    node.event("info", f"rigid body {name!r} tracked again after {now - watch['lost_since']:.2f} s")
-                    watch["lost_since"] = None
-                q = body.rotation
-                state = core.frame(now, np.asarray(body.position), (q.w, q.x, q.y, q.z))
-                if state is not None:
-                    put_state(state)
-                    node.stats.output(time.monotonic() - state.stamp_s)
-
-    kind = f"{mc_config.type} (NatNet {'.'.join(map(str, version[:2]))} at {where})" if mc_config.type == "optitrack" \
-        else mc_config.type
-
-    def status() -> str:
-        if watch["stopped_since"] is not None:
-            return f"mocap {kind}: STREAM STOPPED {time.monotonic() - watch['stopped_since']:.1f} s ({seen[0]} frames)"
-        if core.seq < 0:
-            return f"mocap {kind}: {seen[0]} frames, rigid body {name!r} not seen yet"
-        lost = "LOST, " if watch["lost_since"] is not None else ""
-        return f"mocap {kind}: {lost}{seen[0]} frames, sample {core.seq}, {watch['lost_frames']} frames without the body"
-
-    node.status_hook = status
-    reader = threading.Thread(target=read_frames, name="mocap-frames", daemon=True)
-    reader.start()
-    while not node.stopping and (n_total is None or core.seq + 1 < n_total):
-        node.wait(0.05)
-        with node.lock:
-            silent_s = time.monotonic() - watch["last_frame_s"]
-            if silent_s > mc_config.stream_timeout_s and watch["stopped_since"] is None:
-                watch["stopped_since"] = watch["last_frame_s"]
-                node.stats.count("stream_stops")
-                node.event("warning", f"mocap stream from {where} stopped: no frame for {silent_s:.2f} s; no state "
-                                      "until it is back")
-    stopping[0] = True
-    reader.join(timeout=1.0)  # it leaves at its next frame; a stopped stream leaves it blocked in the library (a daemon)
-    node.log(f"done: {seen[0]} frames, {core.seq + 1} states, {watch['lost_frames']} frames without {name!r}")

@@ -19,8 +19,8 @@ control (PX4's land detector), and disarms 2 s of vehicle time later (PX4's COM_
 COM_OBL_RC_ACT (``sim/px4/neso_quad.params``, read here: 0.3 s, Hold; the last line of defence behind the gateway's
 own failsafe) and, as PX4 does, returns to offboard when setpoints stream again. Disarmed: motors off. It says
 what PX4 v1.16 says in STATUSTEXT for the same events (arming, disarming, land, landing detected, the failsafe);
-it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, as PX4 does. Where it still differs from PX4 SITL:
-docs/px4.md, "Real PX4 in the loop".
+it answers SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, and a request for it only once it has one, as PX4 does. Where
+it still differs from PX4 SITL: docs/px4.md, "Real PX4 in the loop".
 
 **Pre-flight checks** (PX4's EKF2 settling on external vision, then commander's arming checks): it is ready
 only once it has received external-vision ODOMETRY (quality at least EKF2_EV_QMIN 1, as the gateway forwards the
@@ -50,6 +50,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -145,6 +146,8 @@ class MavlinkVehicle:
         self._ev_since_s: float | None = None  # start of the current unbroken external-vision run (vehicle time)
         self._ev_last_s = -math.inf
         self.ready = False  # its pre-flight checks pass (module docstring)
+        self.params = dict(load_params())  # name → value as the airframe file writes it (a point: a float)
+        self.origin: tuple[int, int, int] | None = None  # its EKF global origin (lat, lon deg·1e7, alt mm)
         self._said_ready = False
         self._last_report_s = -math.inf
         self._report_due = False  # a change of the checks' results not yet reported (PX4's rate limit)
@@ -152,6 +155,7 @@ class MavlinkVehicle:
         self.t_s = 0.0  # the vehicle's clock: the world's time, as the simulator last handed it (module docstring)
         self._next_slow_s = 0.0
         self._next_hb_s = 0.0
+        self._next_estimator_s = 0.0
         self._stop = threading.Event()
         self._rx = threading.Thread(target=self._receive, name="mavlink-vehicle-rx", daemon=True)
         self._rx.start()
@@ -177,8 +181,8 @@ class MavlinkVehicle:
                 continue
             now, arrived = self.t_s, time.monotonic()
             kind = msg.get_type()
-            if kind == "ODOMETRY" and msg.quality >= 1:  # EKF2_EV_QMIN 1 (sim/px4/neso_quad.params): -1 is not fused
-                self._on_external_vision(now)
+            if kind == "ODOMETRY" and (self._param("EKF2_EV_QMIN") <= 0 or msg.quality >= self._param("EKF2_EV_QMIN")):
+                self._on_external_vision(now)  # EKF2's quality_sufficient (ev_control.cpp): -1 is not fused with 1
             if kind == "SET_ATTITUDE_TARGET":
                 self._on_attitude_target(msg, now, arrived)
             elif kind in ("COMMAND_LONG", "COMMAND_INT"):
@@ -188,11 +192,43 @@ class MavlinkVehicle:
                               "frame": msg.frame_id})
             elif kind == "SET_GPS_GLOBAL_ORIGIN":  # PX4 takes it as its EKF origin and reports it back
                 self._record({"t": arrived, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
-                self._send(lambda m: m.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, 0))
-            elif kind == "PARAM_REQUEST_LIST":
-                self._send(lambda m: m.param_value_send(b"MIS_TAKEOFF_ALT", self.config.takeoff_height_m,
-                                                        mavlink.MAV_PARAM_TYPE_REAL32, 1, 0))
+                self.origin = (msg.latitude, msg.longitude, msg.altitude)
+                self._send_origin()
+            elif kind in ("PARAM_REQUEST_READ", "PARAM_SET", "PARAM_REQUEST_LIST"):
+                self._on_param(msg, kind)
             self.received += 1  # handled
+
+    # -- parameters (PX4's: the world's airframe file, sim/px4/neso_quad.params) ---------------------------
+    def _param(self, name: str) -> float:
+        with self.lock:
+            return float(self.params[name])
+
+    def _on_param(self, msg, kind: str) -> None:
+        """PARAM_REQUEST_READ / PARAM_SET / PARAM_REQUEST_LIST answered with PARAM_VALUE as PX4 answers them: int32
+        values bytewise in the float field (PX4's encoding; MAVSDK reads it so from a PX4); a name it does not have
+        gets no answer (PX4 v1.16 sends none)."""
+        names = list(self.params)
+        if kind == "PARAM_REQUEST_LIST":
+            wanted = names
+        else:
+            name = msg.param_id.rstrip("\0") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\0")
+            if name not in self.params:
+                return
+            wanted = [name]
+            if kind == "PARAM_SET":
+                is_int = "." not in self.params[name]
+                value = _int_of_bytes(msg.param_value) if is_int else float(msg.param_value)
+                with self.lock:
+                    self.params[name] = str(int(value)) if is_int else repr(float(value))
+                self._record({"t": time.monotonic(), "kind": "param_set", "name": name, "value": value})
+        for name in wanted:
+            text = self.params[name]
+            if "." in text:
+                value, kind_id = float(text), mavlink.MAV_PARAM_TYPE_REAL32
+            else:
+                value, kind_id = _bytes_of_int(int(text)), mavlink.MAV_PARAM_TYPE_INT32
+            index = names.index(name)
+            self._send(lambda m, n=name, v=value, k=kind_id, i=index: m.param_value_send(n.encode(), v, k, len(names), i))
 
     def _on_attitude_target(self, msg, now: float, arrived: float) -> None:
         q = tuple(float(v) for v in msg.q)
@@ -291,6 +327,8 @@ class MavlinkVehicle:
             self._say(severity, said)
         if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             self._send_autopilot_version()
+        if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(params[0]) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            self._send_origin()
         if cmd == mavlink.MAV_CMD_DO_SET_MODE or cmd in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
                                                          mavlink.MAV_CMD_COMPONENT_ARM_DISARM):
             self._heartbeat()  # report the new mode at once, as PX4 does
@@ -383,6 +421,12 @@ class MavlinkVehicle:
                       mavlink.MAV_STATE_STANDBY if self.ready else mavlink.MAV_STATE_UNINIT)
         self._send(lambda m: m.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, status))
 
+    def _send_origin(self) -> None:
+        """GPS_GLOBAL_ORIGIN when it has one (PX4 sends it only with a valid origin: GPS_GLOBAL_ORIGIN.hpp)."""
+        if self.origin is not None:
+            lat, lon, alt = self.origin
+            self._send(lambda m: m.gps_global_origin_send(lat, lon, alt, 0))
+
     def _send_autopilot_version(self) -> None:
         caps = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
                 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT)
@@ -422,6 +466,17 @@ class MavlinkVehicle:
         if now >= self._next_slow_s:
             self._next_slow_s = now + 0.1
             self._send_slow(pos_ned, vel_ned, yaw_ned, boot_ms)
+        if now >= self._next_estimator_s:
+            self._next_estimator_s = now + 1.0
+            self._send_estimator_status()
+
+    def _send_estimator_status(self) -> None:
+        """ESTIMATOR_STATUS as PX4 v1.16 streams it on its onboard link (1 Hz): EKF2's solution flags, a local
+        position (attitude, horizontal velocity, relative horizontal and absolute vertical position) once it has
+        settled on external vision, else attitude and a constant position."""
+        flags = (1 | 2 | 8 | 32) if self.ready else (1 | 128)
+        self._send(lambda m: m.estimator_status_send(int(self.t_s * 1e6), flags, 0, 0, 0, 0, 0,
+                                                     0, 0, 0))
 
     def _send_slow(self, pos_ned, vel_ned, yaw_ned: float, boot_ms: int) -> None:
         lat0, lon0, alt0 = 47.397742, 8.545594, 488.0  # PX4 SITL's default origin (Zurich)
@@ -468,3 +523,12 @@ def _frd_velocity(q_wxyz, vel_ned) -> tuple[float, float, float]:
                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
     v = r.T @ np.asarray(vel_ned)
     return float(v[0]), float(v[1]), float(v[2])
+
+
+def _bytes_of_int(value: int) -> float:
+    """An int32 parameter as PX4 sends it in PARAM_VALUE's float field: its four bytes, reinterpreted."""
+    return struct.unpack("<f", struct.pack("<i", value))[0]
+
+
+def _int_of_bytes(value: float) -> int:
+    return struct.unpack("<i", struct.pack("<f", value))[0]

@@ -4,8 +4,10 @@
 Pure: bytes in, bytes out; no sockets. Layouts follow OptiTrack's published parsers (NatNet SDK
 4.1 ``PacketClient.cpp``/``NatNetClient.py``, the ``natnetsdk`` package) and the reader we fly,
 libmotioncapture 1.1's ``src/optitrack.cpp``. Every packet is ``uint16 message id, uint16 payload
-bytes, payload``, little-endian. We speak NatNet **4.1** (Motive 3.1 and later): counts of the
-frame's data sets and of each model description are followed by their size in bytes.
+bytes, payload``, little-endian. NatNet versions :data:`SUPPORTED` (3.0 Motive 2.0 … 4.1 Motive 3.1; a later 4.x
+is read as 4.1): from 3.0 every frame carries Motive's high-resolution timestamps (camera mid-exposure, data
+received, transmit), which the source stamps its states with; from 4.1 counts of the frame's data sets and of
+each model description are followed by their size in bytes (earlier versions are walked field by field).
 
 Motive's frames: **y-up** by default (x, y up, z; right-handed; ``FRAMES['y_up']`` of
 :mod:`flight.source` maps it to ENU), **z-up** when the streaming pane's Up Axis says Z (then x, y,
@@ -34,7 +36,9 @@ NAT_KEEPALIVE = 10
 NAT_UNRECOGNIZED_REQUEST = 100
 
 NATNET_VERSION = (4, 1, 0, 0)
-MOTIVE_VERSION = (3, 1, 0, 0)  # the application version a NatNet 4.1 server reports
+SUPPORTED = ((3, 0), (3, 1), (4, 0), (4, 1))  # NatNet (major, minor) read here; the simulated Motive speaks each
+MOTIVE_OF = {(3, 0): (2, 0, 0, 0), (3, 1): (2, 1, 0, 0), (4, 0): (3, 0, 0, 0), (4, 1): (3, 1, 0, 0)}
+MOTIVE_VERSION = MOTIVE_OF[(4, 1)]  # the application version a NatNet 4.1 server reports
 DATASET_RIGID_BODY = 1
 TRACKING_VALID = 0x01  # rigid body params bit: tracked in this frame
 MAX_PACKET_BYTES = 65503
@@ -92,11 +96,23 @@ def split(data: bytes) -> tuple[int, bytes]:
     return message_id, bytes(data[_HEADER.size:_HEADER.size + size])
 
 
+def supported(version: tuple[int, ...]) -> bool:
+    """Whether frames of NatNet ``version`` are read here (3.0 and later; a 4.x above 4.1 as 4.1)."""
+    return tuple(version[:2]) >= (3, 0) and version[0] <= 4
+
+
+def _sized(version: tuple[int, ...]) -> bool:
+    """From NatNet 4.1 each data set's count (and each model description) is followed by its size in bytes."""
+    return tuple(version[:2]) >= (4, 1)
+
+
 def server_info(*, data_port: int, multicast: bool, multicast_group: str, clock_hz: int,
-                app_name: str = "Motive") -> bytes:
-    """NAT_SERVERINFO (``sSender_Server``): the answer to NAT_CONNECT."""
+                app_name: str = "Motive", version: tuple[int, ...] = NATNET_VERSION) -> bytes:
+    """NAT_SERVERINFO (``sSender_Server``): the answer to NAT_CONNECT, for NatNet ``version``."""
     group = [int(b) for b in multicast_group.split(".")]
-    return packet(NAT_SERVERINFO, _SERVER_INFO.pack(app_name.encode()[:255], *MOTIVE_VERSION, *NATNET_VERSION,
+    natnet_version = tuple(version) + (0,) * (4 - len(version))
+    motive = MOTIVE_OF.get(tuple(version[:2]), MOTIVE_VERSION)
+    return packet(NAT_SERVERINFO, _SERVER_INFO.pack(app_name.encode()[:255], *motive, *natnet_version,
                                                     clock_hz, data_port, int(multicast), *group))
 
 
@@ -109,60 +125,187 @@ def parse_server_info(payload: bytes) -> ServerInfo:
                       multicast_group=".".join(map(str, v[12:16])))
 
 
-def model_def(bodies: dict[int, str]) -> bytes:
-    """NAT_MODELDEF: one rigid-body description per ``{id: name}`` (no parent, no offset, no markers)."""
+def model_def(bodies: dict[int, str], version: tuple[int, ...] = NATNET_VERSION) -> bytes:
+    """NAT_MODELDEF: one rigid-body description per ``{id: name}`` (no parent, no offset, no markers), laid out
+    for NatNet ``version``."""
     out = [struct.pack("<i", len(bodies))]
     for body_id, name in bodies.items():
         desc = name.encode() + b"\0" + struct.pack("<ii3fi", body_id, -1, 0.0, 0.0, 0.0, 0)
-        out.append(struct.pack("<ii", DATASET_RIGID_BODY, len(desc)) + desc)
+        size = struct.pack("<i", len(desc)) if _sized(version) else b""
+        out.append(struct.pack("<i", DATASET_RIGID_BODY) + size + desc)
     return packet(NAT_MODELDEF, b"".join(out))
 
 
-def parse_rigid_body_names(payload: bytes) -> dict[int, str]:
-    """``{id: name}`` of the rigid bodies in a NatNet 4.1 NAT_MODELDEF payload (other data sets skipped
-    by their size)."""
+class _Reader:
+    """Little-endian fields from a payload; :class:`NatNetError` when it runs short."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.data, self.at = payload, 0
+
+    def take(self, fmt: str):
+        try:
+            values = struct.unpack_from("<" + fmt, self.data, self.at)
+        except struct.error:
+            raise NatNetError(f"payload ends at byte {len(self.data)}, {struct.calcsize('<' + fmt)} more wanted at "
+                              f"{self.at}") from None
+        self.at += struct.calcsize("<" + fmt)
+        return values if len(values) > 1 else values[0]
+
+    def text(self) -> str:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise NatNetError(f"an unterminated name at byte {self.at}")
+        value = self.data[self.at:end].decode(errors="replace")
+        self.at = end + 1
+        return value
+
+    def skip(self, n: int) -> None:
+        if n < 0 or self.at + n > len(self.data):
+            raise NatNetError(f"a size of {n} bytes at byte {self.at} runs past the payload ({len(self.data)})")
+        self.at += n
+
+
+def _rigid_body_description(r: _Reader, version: tuple[int, ...]) -> tuple[int, str]:
+    """(id, name) of one rigid-body description (NatNet 3.0+: name, id, parent, offset, markers)."""
+    name = r.text()
+    body_id = r.take("i")
+    r.take("i3f")  # parent, offset
+    if tuple(version[:2]) >= (4, 2):
+        r.take("4f")  # its orientation (NatNet 4.2)
+    markers = r.take("i")
+    r.skip(markers * 16)  # positions and required active labels
+    if version[0] >= 4:
+        for _ in range(markers):
+            r.text()
+    return body_id, name
+
+
+def parse_rigid_body_names(payload: bytes, version: tuple[int, ...] = NATNET_VERSION) -> dict[int, str]:
+    """``{id: name}`` of the rigid bodies in a NAT_MODELDEF payload of NatNet ``version`` (3.0 and later). From
+    4.1 other descriptions are skipped by their size; before it marker sets and skeletons (whose bones are rigid
+    bodies too) are walked, and a description of another kind (force plate, device, camera) ends the reading
+    with the names found so far: Motive lists rigid bodies before those."""
+    r = _Reader(payload)
+    names: dict[int, str] = {}
     try:
-        (n,), at = struct.unpack_from("<i", payload), 4
-        names = {}
-        for _ in range(n):
-            kind, size = struct.unpack_from("<ii", payload, at)
-            at += 8
-            if kind == DATASET_RIGID_BODY:
-                end = payload.index(b"\0", at)
-                (body_id,) = struct.unpack_from("<i", payload, end + 1)
-                names[body_id] = payload[at:end].decode(errors="replace")
-            at += size
+        for _ in range(r.take("i")):
+            kind = r.take("i")
+            if _sized(version):
+                size = r.take("i")
+                end = r.at + size
+                if kind == DATASET_RIGID_BODY:
+                    body_id, name = _rigid_body_description(r, version)
+                    names[body_id] = name
+                r.at = end
+                if end > len(payload):
+                    raise NatNetError(f"a description of {size} bytes runs past the payload")
+            elif kind == 0:  # marker set: name, marker names
+                r.text()
+                for _ in range(r.take("i")):
+                    r.text()
+            elif kind == DATASET_RIGID_BODY:
+                body_id, name = _rigid_body_description(r, version)
+                names[body_id] = name
+            elif kind == 2:  # skeleton: name, id, its bones' rigid-body descriptions
+                r.text()
+                r.take("i")
+                for _ in range(r.take("i")):
+                    _rigid_body_description(r, version)
+            else:
+                break
         return names
-    except (struct.error, ValueError) as exc:
+    except (NatNetError, UnicodeDecodeError) as exc:
         raise NatNetError(f"model definitions unreadable: {exc}") from None
 
 
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One NAT_FRAMEOFDATA: its number, rigid bodies (Motive's frame) and Motive's own times: ``timestamp_s``
+    (s since Motive started streaming), and the high-resolution ticks (of the server's ``clock_hz``) of the
+    cameras' mid-exposure, of the data reaching Motive and of its transmission."""
+
+    number: int
+    bodies: tuple[BodyPose, ...]
+    timestamp_s: float
+    mid_exposure_ticks: int
+    received_ticks: int
+    transmit_ticks: int
+
+
 def frame_of_data(frame_number: int, bodies: list[BodyPose], *, timestamp_s: float, mid_exposure_ticks: int,
-                  received_ticks: int, transmit_ticks: int, clock_hz: int) -> bytes:
-    """NAT_FRAMEOFDATA, NatNet 4.1: frame number, the data sets (marker sets, legacy markers, rigid
-    bodies, skeletons, assets, labeled markers, force plates, devices: only rigid bodies here, each count
-    followed by its size in bytes), timecode, ``timestamp_s`` (s since the stream started), the three
-    high-resolution timestamps (ticks of ``clock_hz``), the precision timestamp (s, fraction of a
+                  received_ticks: int, transmit_ticks: int, clock_hz: int,
+                  version: tuple[int, ...] = NATNET_VERSION) -> bytes:
+    """NAT_FRAMEOFDATA of NatNet ``version``: frame number, the data sets (marker sets, legacy markers, rigid
+    bodies, skeletons, assets (4.1), labeled markers, force plates, devices: only rigid bodies here; from 4.1
+    each count followed by its size in bytes), timecode, ``timestamp_s`` (s since the stream started), the three
+    high-resolution timestamps (ticks of ``clock_hz``), from 4.1 the precision timestamp (s, fraction of a
     second in 2^-32), frame params (0) and the end-of-data tag (0)."""
     rigid = b"".join(_RIGID_BODY.pack(b.id, *b.pos_m, *b.quat_xyzw, b.mean_error_m, TRACKING_VALID if b.tracked else 0)
                      for b in bodies)
-    empty = struct.pack("<ii", 0, 0)
+    sized = _sized(version)
+    empty = struct.pack("<ii", 0, 0) if sized else struct.pack("<i", 0)
+    rigid_head = struct.pack("<ii", len(bodies), len(rigid)) if sized else struct.pack("<i", len(bodies))
     secs = mid_exposure_ticks // clock_hz
     frac = (mid_exposure_ticks % clock_hz) * (1 << 32) // clock_hz
+    times = struct.pack("<IIdQQQ", 0, 0, timestamp_s, mid_exposure_ticks, received_ticks, transmit_ticks)
+    precision = struct.pack("<II", secs & 0xFFFFFFFF, frac) if sized else b""
     payload = b"".join((
         struct.pack("<i", frame_number),
         empty,  # marker sets
         empty,  # legacy unlabeled markers
-        struct.pack("<ii", len(bodies), len(rigid)), rigid,
+        rigid_head, rigid,
         empty,  # skeletons
-        empty,  # assets
+        empty if sized else b"",  # assets (4.1)
         empty,  # labeled markers
         empty,  # force plates
         empty,  # devices
-        struct.pack("<IIdQQQIIhi", 0, 0, timestamp_s, mid_exposure_ticks, received_ticks, transmit_ticks,
-                    secs & 0xFFFFFFFF, frac, 0, 0),
+        times, precision, struct.pack("<hi", 0, 0),
     ))
     return packet(NAT_FRAMEOFDATA, payload)
+
+
+def _frame_rigid_body(r: _Reader) -> BodyPose:
+    body_id, x, y, z, qx, qy, qz, qw, error, params = r.take("i3f4ffh")
+    return BodyPose(body_id, (x, y, z), (qx, qy, qz, qw), bool(params & TRACKING_VALID), error)
+
+
+def parse_frame(payload: bytes, version: tuple[int, ...] = NATNET_VERSION) -> Frame:
+    """A NAT_FRAMEOFDATA payload of NatNet ``version`` (:func:`supported`) read as OptiTrack's SDK reads it: its
+    rigid bodies and Motive's times; every other data set skipped (by its size from 4.1, field by field
+    before). :class:`NatNetError` for a payload that is not one."""
+    r = _Reader(payload)
+    sized = _sized(version)
+
+    def data_set(read_item=None) -> list:
+        """One data set: its items read with ``read_item``; from 4.1 one not wanted is skipped by its size."""
+        n = r.take("i")
+        if not 0 <= n <= 100_000:
+            raise NatNetError(f"a data set of {n} items")
+        if sized:
+            size = r.take("i")
+            if read_item is None:
+                r.skip(size)
+                return []
+        return [read_item() for _ in range(n)]
+
+    def channels() -> None:  # a force plate or device: id, channels, each a count of floats
+        r.take("i")
+        for _ in range(r.take("i")):
+            r.skip(4 * r.take("i"))
+
+    number = r.take("i")
+    data_set(None if sized else lambda: (r.text(), r.skip(12 * r.take("i"))))  # marker sets
+    data_set(None if sized else lambda: r.skip(12))  # legacy unlabeled markers
+    bodies = tuple(data_set(lambda: _frame_rigid_body(r)))
+    data_set(None if sized else lambda: (r.take("i"), [_frame_rigid_body(r) for _ in range(r.take("i"))]))  # skeletons
+    if sized:
+        data_set()  # assets (4.1)
+    data_set(None if sized else lambda: r.skip(26))  # labeled markers: id, position, size, params, residual
+    data_set(None if sized else channels)  # force plates
+    data_set(None if sized else channels)  # devices
+    r.take("II")  # timecode
+    timestamp_s, mid, received, transmit = r.take("dQQQ")
+    return Frame(number, bodies, timestamp_s, mid, received, transmit)
 
 
 def motive_pose(pos_enu_m, rpy_rad, up_axis: str) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:

@@ -1,5 +1,5 @@
 """``python -m sim.natnet_motive``: one simulated Motive PC for several simulated vehicles
-(``neso up --mocap natnet`` with more than one ``--name``): NatNet 4.1 on loopback streaming every vehicle's
+(``neso up --mocap natnet`` with more than one ``--name``): NatNet (4.1 unless ``--natnet-version``) on loopback streaming every vehicle's
 rigid body in one frame stream (:class:`sim.natnet_server.SharedMotive`), fed by each vehicle's world over a
 loopback UDP port. Runs until SIGINT or SIGTERM."""
 from __future__ import annotations
@@ -22,6 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jitter-ms", type=float, default=0.0)
     p.add_argument("--dropout", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--natnet-version", default="4.1", choices=("3.0", "3.1", "4.0", "4.1"))
     args = p.parse_args(argv)
     names = [n for n in args.bodies.split(",") if n]
     if not names or len(set(names)) != len(names):
@@ -29,7 +30,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         server = NatNetServer(NatNetServerConfig(bodies={n: i + 1 for i, n in enumerate(names)},
-                                                 command_port=args.port, data_port=args.port + 1)).start()
+                                                 command_port=args.port, data_port=args.port + 1,
+                                                 version=tuple(int(v) for v in args.natnet_version.split("."))))
+        server.start()
         motive = SharedMotive(server, StreamModel(jitter_std_s=args.jitter_ms / 1e3, dropout=args.dropout,
                                                   up_axis=args.up_axis),
                               rate_hz=args.rate, feed_port=args.feed_port, seed=args.seed).start()
@@ -39,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     caught: list[int] = []  # the handler only appends (no lock: one that waited on what it interrupted could hang)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: caught.append(signum))
-    print(f"simulated Motive: NatNet 4.1 on 127.0.0.1:{args.port} (data {args.port + 1}), {args.up_axis}-up, "
+    print(f"simulated Motive: NatNet {args.natnet_version} on 127.0.0.1:{args.port} (data {args.port + 1}), {args.up_axis}-up, "
           f"{args.rate:g} Hz, rigid bodies {dict(server.config.bodies)}; fed on UDP {args.feed_port}", flush=True)
     while not caught:
         time.sleep(0.1)

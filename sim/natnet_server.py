@@ -35,9 +35,11 @@ CLOCK_HZ = 10_000_000  # Motive's high-resolution clock on Windows: 10 MHz
 
 @dataclass(frozen=True)
 class NatNetServerConfig:
-    """Ports and transport; ``bodies``: ``{name: id}`` streamed, in this order."""
+    """Ports and transport; ``bodies``: ``{name: id}`` streamed, in this order; ``version``: the NatNet version it
+    speaks (one of :data:`sim.natnet.SUPPORTED`)."""
 
     bodies: dict[str, int] = field(default_factory=lambda: {"uav1": 1})
+    version: tuple[int, int] = natnet.NATNET_VERSION[:2]
     command_port: int = 1510
     data_port: int = 1511
     multicast: bool = True
@@ -123,8 +125,8 @@ class NatNetServer:
     def _serve_commands(self) -> None:
         cfg = self.config
         info = natnet.server_info(data_port=cfg.data_port, multicast=cfg.multicast, multicast_group=cfg.multicast_group,
-                                  clock_hz=CLOCK_HZ)
-        model = natnet.model_def({body_id: name for name, body_id in cfg.bodies.items()})
+                                  clock_hz=CLOCK_HZ, version=cfg.version)
+        model = natnet.model_def({body_id: name for name, body_id in cfg.bodies.items()}, cfg.version)
         while not self._stopping:
             try:
                 data, addr = self._cmd.recvfrom(65536)
@@ -170,7 +172,8 @@ class NatNetServer:
             now = time.monotonic()
             frame = natnet.frame_of_data(next(self._frame_number), bodies, timestamp_s=mid_s - self._t0,
                                          mid_exposure_ticks=int(mid_s * CLOCK_HZ), received_ticks=int(mid_s * CLOCK_HZ),
-                                         transmit_ticks=int(now * CLOCK_HZ), clock_hz=CLOCK_HZ)
+                                         transmit_ticks=int(now * CLOCK_HZ), clock_hz=CLOCK_HZ,
+                                         version=self.config.version)
             for sock, dest in self._destinations():
                 try:
                     sock.sendto(frame, dest)

@@ -23,7 +23,7 @@ from neso.types import StateMeasurement
 from recordings.writer import FlightWriter
 from runtime.schema import (CommandReply, CommandRequest, EstimateMsg, EventMsg, HealthMsg, Message, NetworkMsg,
                             ParamReply, ParamRequest, ParamStateMsg, RecordingMsg, ReferenceMsg, ReplayMsg, SetpointMsg,
-                            StateMsg, TelemetryMsg, TruthMsg)
+                            PreflightMsg, StateMsg, TelemetryMsg, TruthMsg)
 
 REPO = Path(__file__).resolve().parents[1]
 BASE = str(REPO / "networks" / "base.safetensors")  # the network the estimator flies by default
@@ -188,6 +188,8 @@ EXAMPLES: list[Message] = [  # one of every message type (tests/unit/test_schema
     NetworkMsg(stamp_s=1.0, seq=100, active={"id": "base-L1", "source": "file", "lipschitz_norm": 1.0,
                                              "lipschitz_phys": 31.6},
                candidate={}, previous={}, shadow_error_rms_mps2=-1.0),
+    PreflightMsg(stamp_s=1.0, checked_s=0.9, go=False,
+                 items={"EKF2_EV_QMIN": ["no-go", "0", "param set EKF2_EV_QMIN 1"], "battery": ["go", "82 %", ""]}),
     ReplayMsg(stamp_s=1.0, file="out/imports/px4-sitl-takeoff-hover.rrd",
               origin="PX4 log px4-sitl-takeoff-hover.ulg · PX4 v1.15.0 · PX4_SITL", t_s=3.5, duration_s=31.0,
               speed=2.0, playing=True),

@@ -234,23 +234,73 @@ def test_malformed_commands_are_counted_and_the_server_still_answers(server):
     assert server.malformed == 3
 
 
-def source(server: NatNetServer, endpoint: str, rigid_body: str) -> subprocess.Popen:
+def source(server: NatNetServer | int, endpoint: str, rigid_body: str) -> subprocess.Popen:
+    port = server if isinstance(server, int) else server.command_port
     return neso("run", "source", "--backend", "mocap", "--mocap-type", "optitrack", "--mocap-port",
-                str(server.command_port), "--mocap-interface", "127.0.0.1", "--rigid-body", rigid_body,
-                "--connect", endpoint)
+                str(port), "--mocap-interface", "127.0.0.1", "--rigid-body", rigid_body, "--connect", endpoint)
 
 
-def test_a_wrong_rigid_body_name_is_refused_naming_the_streamed_ones(server):
+@pytest.mark.parametrize("version", natnet.SUPPORTED)
+def test_a_wrong_rigid_body_name_is_refused_naming_the_streamed_ones_in_every_version(version):
+    """Before, only NatNet 4.1's names were read: another version waited forever in "not seen yet"."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with hub(endpoint):
+    with NatNetServer(NatNetServerConfig(bodies={"uav1": 1, "uav2": 7}, command_port=free_udp_port(),
+                                         data_port=free_udp_port(), version=version)) as server, hub(endpoint):
+        port = server.command_port
         proc = source(server, endpoint, "uav9")
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 2, out
     refusal = [line for line in out.splitlines() if "uav9" in line and "streams" in line]
     assert refusal == [f"source: rigid body 'uav9' is not streamed by the NatNet server at 127.0.0.1:"
-                       f"{server.command_port}; it streams ['uav1', 'uav2'] (--rigid-body, or Motive's Assets pane: "
+                       f"{port}; it streams ['uav1', 'uav2'] (--rigid-body, or Motive's Assets pane: "
                        "the rigid body's name and Streaming on)"], out
     assert "Traceback" not in out
+
+
+def test_a_server_that_answers_late_is_asked_again():
+    """The query is retried (5 tries of 0.5 s): a Motive that starts answering 1.2 s after the source asked is found
+    (before: one try with a 2 s timeout, and the first NAT_CONNECT was lost)."""
+    endpoint, port = f"tcp/127.0.0.1:{free_port()}", free_udp_port()
+    with hub(endpoint) as s:
+        states: list = []
+        sub = s.declare_subscriber(Keys("uav1").topic("state"), lambda sample: states.append(sample))
+        proc = source(port, endpoint, "uav1")
+        try:
+            time.sleep(1.2)
+            with NatNetServer(NatNetServerConfig(command_port=port, data_port=free_udp_port())) as server:
+                streamer = Streamer(server, [[natnet.BodyPose(1, (0.0, 1.0, 0.0), (0, 0, 0, 1))]])
+                deadline = time.monotonic() + 20
+                while len(states) < 20 and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                streamer.close()
+        finally:
+            out = stop(proc)
+            sub.undeclare()
+    assert len(states) >= 20, out
+    assert "queries), rigid bodies ['uav1']" in out and "(1 query)" not in out, out
+
+
+@pytest.mark.parametrize("version", natnet.SUPPORTED)
+def test_the_source_s_natnet_client_and_libmotioncapture_read_every_version_alike(version):
+    """The same stream, one pose per frame: this project's NatNet client (services/natnet_client.py) and the
+    independent libmotioncapture client read the same positions, and ours reads Motive's frame times."""
+    from services.natnet_client import FrameStream, query_server
+
+    with NatNetServer(NatNetServerConfig(bodies={"uav1": 1}, command_port=free_udp_port(), data_port=free_udp_port(),
+                                         version=version)) as server:
+        frames = [[natnet.BodyPose(1, (k * 0.01, 1.0, 0.5), (0, 0, 0, 1))] for k in range(100)]
+        offer = query_server("127.0.0.1", server.command_port)
+        assert offer.info.natnet_version[:2] == version and offer.bodies == {1: "uav1"}
+        ours = FrameStream(offer, "127.0.0.1")
+        theirs = read_with_motioncapture(server, frames, 30)
+        got = [ours.read(1.0) for _ in range(30)]
+        ours.close()
+    assert len(theirs) == 30 and all(g is not None for g in got)
+    xs_theirs = {round(f["uav1"][0][0], 4) for f in theirs}
+    xs_ours = [round(f.bodies[0].pos_m[0], 4) for f, _ in got]
+    assert xs_theirs <= {round(k * 0.01, 4) for k in range(100)} and set(xs_ours) <= {round(k * 0.01, 4) for k in range(100)}
+    mids = [f.mid_exposure_ticks for f, _ in got]
+    assert mids == sorted(mids) and all(f.transmit_ticks >= f.mid_exposure_ticks for f, _ in got)
 
 
 def test_no_server_is_one_clear_line():

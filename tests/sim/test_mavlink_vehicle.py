@@ -262,3 +262,46 @@ def test_landing_is_detected_and_disarms_two_seconds_later_in_px4s_words():
     disarmed_s = said[4]["vehicle_t_s"] - touchdown_s  # COM_DISARM_LAND after touch-down
     assert within_a_period(disarmed_s, VehicleConfig().disarm_after_landing_s), disarmed_s
     assert gcs.said()[-2:] == ["Landing detected", "Disarmed by landing"]  # what a ground station hears
+
+
+def test_parameters_are_read_and_set_as_px4_answers_them_and_ekf2_ev_qmin_decides_what_is_fused():
+    """PARAM_REQUEST_READ / PARAM_SET answered with PARAM_VALUE as PX4 answers them (int32 bytewise, floats as
+    floats), from the world's airframe file; a name it does not have gets no answer; with EKF2_EV_QMIN set to 0
+    (PX4's default) a pose with quality -1 is fused, as EKF2 does (ev_control.cpp)."""
+    import struct
+
+    from sim.px4_sitl import load_params
+
+    s = Station()
+    try:
+        def values(since: int, name: str) -> list:
+            return [m for m in s.heard[since:] if m.get_type() == "PARAM_VALUE" and m.param_id == name]
+
+        def read(name: str):
+            since = len(s.heard)
+            s.send("param_request_read", 1, 1, name.encode(), -1)
+            s.hear(lambda: values(since, name), timeout_s=1.0)
+            got = values(since, name)
+            return got[-1] if got else None
+
+        airframe = load_params()
+        qmin = read("EKF2_EV_QMIN")
+        assert qmin.param_type == mavlink.MAV_PARAM_TYPE_INT32
+        assert struct.unpack("<i", struct.pack("<f", qmin.param_value))[0] == int(airframe["EKF2_EV_QMIN"]) == 1
+        loss = read("COM_OF_LOSS_T")
+        assert loss.param_type == mavlink.MAV_PARAM_TYPE_REAL32 and loss.param_value == pytest.approx(0.3)
+        assert read("NO_SUCH_PARAM") is None
+        s.stream(3.0, quality=-1)
+        assert not s.vehicle.ready, "quality -1 is not fused with EKF2_EV_QMIN 1"
+        since = len(s.heard)
+        s.send("param_set", 1, 1, b"EKF2_EV_QMIN", struct.unpack("<f", struct.pack("<i", 0))[0],
+               mavlink.MAV_PARAM_TYPE_INT32)
+        assert s.hear(lambda: values(since, "EKF2_EV_QMIN")), "PARAM_SET is answered with the new value"
+        assert struct.unpack("<i", struct.pack("<f", values(since, "EKF2_EV_QMIN")[-1].param_value))[0] == 0
+        s.stream(3.0, quality=-1)
+        assert s.vehicle.ready, "with EKF2_EV_QMIN 0 the stale pose is fused"
+        s.hear(lambda: s.last("ESTIMATOR_STATUS") is not None and s.last("ESTIMATOR_STATUS").flags & 8)
+        status = s.last("ESTIMATOR_STATUS")
+        assert status is not None and status.flags & 8 and not status.flags & 128
+    finally:
+        s.close()

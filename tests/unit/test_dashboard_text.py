@@ -108,3 +108,18 @@ def test_the_certificate_row_keeps_its_bound_in_one_cell():
     row = next(line for line in figures_markdown(v, 100.0, shown).splitlines() if line.startswith("| certificate |"))
     cells = [c for c in row.replace("\\|", "").split("|") if c.strip()]
     assert len(cells) == 2 and "\\|e_z\\| ≤ 17.2 cm" in row
+
+
+def test_the_preflight_verdict_is_shown_as_the_gateway_published_it():
+    from runtime.schema import PreflightMsg
+
+    model = FleetModel()
+    v = model.vehicle("uav1")
+    assert "no verdict on the bus (no px4_gateway)" in vehicle_markdown(v)
+    model.ingest("uav1", "preflight", PreflightMsg(stamp_s=1.0, checked_s=1.0, go=False, items={
+        "EKF2_EV_QMIN": ["no-go", "0", "param set EKF2_EV_QMIN 1"], "battery": ["go", "90 %", ""],
+        "motion capture jitter": ["warning", "270.0 ms (p99 − p50)", "look for Wi-Fi"]}), 1.0)
+    text = vehicle_markdown(v)
+    assert "**Preflight**: **NO-GO** (3 items, 1 warnings)" in text
+    assert "- **NO-GO** EKF2_EV_QMIN: 0 → param set EKF2_EV_QMIN 1" in text
+    assert "- warning motion capture jitter: 270.0 ms (p99 − p50) → look for Wi-Fi" in text and "battery" not in text

@@ -35,13 +35,44 @@ def test_server_info_round_trips_and_the_independent_parser_agrees():
     assert len(data) == 4 + 279  # libmotioncapture's sResponse, packed
 
 
-def test_model_definitions_name_the_rigid_bodies_for_both_parsers():
-    data = natnet.model_def({1: "uav1", 7: "cf 2"})
+@pytest.mark.parametrize("version", natnet.SUPPORTED)
+def test_model_definitions_name_the_rigid_bodies_for_both_parsers(version):
+    data = natnet.model_def({1: "uav1", 7: "cf 2"}, version)
     message_id, buf = their(data)
     assert message_id == natnet.NAT_MODELDEF
-    theirs = DataDescriptions.read_from_buffer(buf, V41)
+    theirs = DataDescriptions.read_from_buffer(buf, Version(*version))
     assert [(rb.id_num, rb.name) for rb in theirs.rigid_bodies] == [(1, "uav1"), (7, "cf 2")]
-    assert natnet.parse_rigid_body_names(natnet.split(data)[1]) == {1: "uav1", 7: "cf 2"}
+    assert natnet.parse_rigid_body_names(natnet.split(data)[1], version) == {1: "uav1", 7: "cf 2"}
+
+
+@pytest.mark.parametrize("version", natnet.SUPPORTED)
+def test_every_version_s_frame_reads_back_in_both_parsers_with_motive_s_times(version):
+    bodies = [natnet.BodyPose(1, (0.5, 1.0, -2.0), (0.0, 0.7071068, 0.0, 0.7071068)),
+              natnet.BodyPose(7, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), tracked=False)]
+    data = natnet.frame_of_data(42, bodies, timestamp_s=1.25, mid_exposure_ticks=123_456_789, received_ticks=123_556_789,
+                                transmit_ticks=123_600_000, clock_hz=10_000_000, version=version)
+    message_id, buf = their(data)
+    theirs = DataFrame.read_from_buffer(buf, Version(*version))
+    mine = natnet.parse_frame(natnet.split(data)[1], version)
+    assert mine.number == theirs.prefix.frame_number == 42
+    assert [(b.id, b.tracked) for b in mine.bodies] == [(rb.id_num, rb.tracking_valid) for rb in theirs.rigid_bodies]
+    assert mine.bodies[0].pos_m == pytest.approx(theirs.rigid_bodies[0].pos)
+    assert (mine.mid_exposure_ticks, mine.received_ticks, mine.transmit_ticks) == (
+        theirs.suffix.stamp_camera_mid_exposure, theirs.suffix.stamp_data_received, theirs.suffix.stamp_transmit)
+    assert mine.timestamp_s == theirs.suffix.timestamp == 1.25
+
+
+def test_a_3_x_model_walks_marker_sets_and_skeletons_and_stops_at_a_force_plate():
+    """Before 4.1 nothing says how long a description is: marker sets and skeletons (whose bones are rigid bodies
+    too) are read field by field; a kind not read (a force plate) ends the reading with the names found."""
+    import struct
+    marker_set = struct.pack("<i", 0) + b"set\0" + struct.pack("<i", 2) + b"m1\0m2\0"
+    body = struct.pack("<i", 1) + b"uav1\0" + struct.pack("<ii3fi", 3, -1, 0.0, 0.0, 0.0, 1) + bytes(16)
+    bone = b"bone\0" + struct.pack("<ii3fi", 9, -1, 0.0, 0.0, 0.0, 0)
+    skeleton = struct.pack("<i", 2) + b"sk\0" + struct.pack("<ii", 5, 1) + bone
+    plate = struct.pack("<i", 3) + b"\xff" * 40
+    payload = struct.pack("<i", 4) + marker_set + body + skeleton + plate
+    assert natnet.parse_rigid_body_names(payload, (3, 1)) == {3: "uav1"}
 
 
 def test_a_frame_reads_back_field_by_field_in_the_independent_parser():
@@ -134,13 +165,13 @@ def test_jitter_and_dropouts_are_seeded_and_never_send_before_the_exposure():
     assert late.min() >= 0.0 and 0.0005 < np.mean(late) < 0.0011  # |N(0, 1 ms)|: mean 0.8 ms
 
 
-def test_neso_up_refuses_natnet_with_lockstep_or_a_mavlink_vehicle(capsys):
+def test_neso_up_refuses_natnet_with_lockstep_or_px4_sitl(capsys):
     from cli.main import build_parser
     from cli.up import run
 
-    for extra in (["--lockstep"], ["--vehicle", "mavlink"]):
+    for extra in (["--lockstep"], ["--vehicle", "px4"]):
         assert run(build_parser().parse_args(["up", "--mocap", "natnet", *extra])) == 2
-        assert "--mocap natnet runs in real time with --vehicle direct only" in capsys.readouterr().out
+        assert "--mocap natnet runs in real time with --vehicle direct or mavlink only" in capsys.readouterr().out
 
 
 def test_neso_up_streams_several_vehicles_from_one_simulated_motive_and_one_from_its_own():
@@ -176,8 +207,9 @@ def test_the_source_refuses_a_natnet_stream_it_cannot_run_in_one_line():
 
     ok = SourceConfig(mocap_stream="natnet")
     assert natnet_refusal(ok) == "" and natnet_refusal(replace(ok, natnet=NatNetStreamConfig(rate_hz=360.0))) == ""
-    assert "real time with --link direct only" in natnet_refusal(replace(ok, lockstep=True))
-    assert "real time with --link direct only" in natnet_refusal(replace(ok, link="mavlink"))
+    assert natnet_refusal(replace(ok, link="mavlink")) == ""  # a simulated PX4 in a room with OptiTrack
+    assert "real time with --link direct or mavlink only" in natnet_refusal(replace(ok, lockstep=True))
+    assert "real time with --link direct or mavlink only" in natnet_refusal(replace(ok, link="px4"))
     assert "start:duration" in natnet_refusal(replace(ok, natnet=NatNetStreamConfig(lost="1-2")))
     for rate in (50.0, 400.0, 120.5):
         assert "100-360" in natnet_refusal(replace(ok, natnet=NatNetStreamConfig(rate_hz=rate)))

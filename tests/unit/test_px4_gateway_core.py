@@ -170,3 +170,31 @@ def test_a_hold_acknowledged_but_not_taken_is_followed_by_land_after_hold_confir
     taken.on_setpoint(setpoint(), 10.0)
     assert taken.check_stale(10.6, offboard=True, armed=True) == "hold"
     assert taken.check_stale(11.61, offboard=False, armed=True) == "", "in hold: land only after land_after_s"
+
+
+def test_a_refused_arm_says_why_in_words_and_how_long_ekf2_may_still_take():
+    """Before: "arm: ActionError: COMMAND_DENIED; origin: arm(); params: ()"."""
+    core = GatewayCore(GatewayConfig(ev_settle_s=1.9))
+    said = "CRITICAL: Arming denied: Resolve system health failures first"
+    no_vision = core.refusal("arm", "COMMAND_DENIED", 10.0, ready=False, said=said)
+    assert no_vision == ("arm refused by the vehicle: PX4 denied it; not ready: PX4 gets no external vision (is the "
+                         f"motion capture reaching the gateway?); PX4 says: {said}")
+    for k in range(61):  # 1.2 s of poses at 50 Hz
+        core.on_pose(10.0 + 0.02 * k)
+    settling = core.refusal("arm", "COMMAND_DENIED", 11.2, ready=False)
+    assert "not ready: EKF2 settling on the motion capture, about 0.7 s more (1.2 s of it so far" in settling
+    assert "not ready after 3.0 s of motion capture" in core.refusal("arm", "COMMAND_DENIED", 13.0, ready=False)
+    assert core.refusal("takeoff", "COMMAND_DENIED_NOT_LANDED", 13.0, ready=True) == \
+        "takeoff refused by the vehicle: PX4 does not do it in the air"
+
+
+def test_the_capture_time_follows_the_poses_age_not_its_arrival():
+    core = GatewayCore(GatewayConfig())
+    aged = StateMsg(seq=1, stamp_s=50.0, t_s=1.0, pos_enu_m=(0, 0, 1), vel_enu_mps=(0, 0, 0), roll_rad=0.0,
+                    pitch_rad=0.0, yaw_rad=0.0, source="mocap", capture_stamp_s=49.988)
+    assert core.capture_s(aged, 60.0) == pytest.approx(60.0 - 0.012)  # another machine's clock: only the age counts
+    assert core.capture_s(dataclasses.replace(aged, capture_stamp_s=0.0), 60.0) == 60.0
+    for k in range(100):
+        core.on_pose(60.0 + 0.02 * k, 60.0 + 0.02 * k - 0.012)
+    p50, p99 = core.delay_to_vehicle_ms(link_s=0.001)
+    assert p50 == pytest.approx(13.0) and p99 == pytest.approx(13.0)

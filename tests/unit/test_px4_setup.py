@@ -297,3 +297,15 @@ def test_a_px4_instance_chosen_here_is_not_chosen_by_another_process():
         assert theirs != mine
     finally:
         release_px4_instance(mine)
+
+
+def test_neso_up_hands_px4_another_airframe_and_refuses_a_bad_one_in_one_line(tmp_path, capsys):
+    from cli.up import run
+
+    other = tmp_path / "defaults.params"
+    other.write_text("EKF2_EV_CTRL 0\n")
+    args = build_parser().parse_args(["up", "--vehicle", "px4", "--px4-params", str(other)])
+    px4 = next(s for s in build_specs(args) if s.name == "px4")
+    assert list(px4.argv[-2:]) == ["--params", str(other)]
+    other.write_text("EKF2_EV_CTRL fifteen\n")
+    assert run(args) == 2 and "neso up: --px4-params: " in capsys.readouterr().out

@@ -414,3 +414,30 @@ def test_what_the_viewer_plots_z_alone_named_the_loop_latency_and_the_trail(tmp_
     trail = columns["/neso/uav1/state/point|Points3D:positions"]
     states = [m for c, m in msgs if c == "state"]
     assert len(trail) == 60 and trail[5][0] == pytest.approx(states[5].pos_enu_m), "a position per sample"
+
+
+def test_the_catalog_says_where_the_states_came_from_natnet_version_server_body_and_px4(tmp_path):
+    """Before: a NatNet flight was listed as "mocap" (its source's parameters were recorded empty) and a PX4 SITL
+    flight as "sim"."""
+    from recordings.catalog import catalog, format_table
+    from recordings.writer import FlightWriter
+    from tests.helpers import EXAMPLES
+
+    state = next(m for m in EXAMPLES if isinstance(m, StateMsg))
+    telemetry = next(m for m in EXAMPLES if type(m).__name__ == "TelemetryMsg")
+    flights = {
+        "natnet": ({"kind": "natnet", "natnet_version": "4.1.0.0", "server": "192.168.1.5:1510",
+                    "server_app": "Motive 3.1.0.0", "rigid_body": "uav1"}, "mocap", ""),
+        "px4": ({"kind": "sim", "scenario": "nominal_landing", "link": "px4"}, "sim", "PX4 v1.16.0 6ea3539"),
+    }
+    for name, (description, source, autopilot) in flights.items():
+        w = FlightWriter(tmp_path / f"{name}.rrd", vehicle="uav1", flight=name,
+                         properties={"params": {"source": description}})
+        w.add("state", dataclasses.replace(state, source=source))
+        if autopilot:
+            w.add("telemetry", dataclasses.replace(telemetry, autopilot=autopilot))
+        w.close()
+    got = {e.flight: e.source for e in catalog(tmp_path)}
+    assert got == {"natnet": "NatNet 4.1 uav1@192.168.1.5:1510",
+                   "px4": "sim nominal_landing in PX4 SITL · PX4 v1.16.0 6ea3539"}
+    assert "NatNet 4.1 uav1@192.168.1.5:1510" in format_table(catalog(tmp_path))

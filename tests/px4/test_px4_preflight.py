@@ -1,0 +1,169 @@
+"""Preflight against real PX4 v1.16.0 SITL, one boot for every check (`neso up --vehicle px4`, tests in file order):
+an arm before EKF2 has settled is refused in words; with the generated airframe `neso preflight` says GO; each
+required parameter set wrong in turn over MAVLink (and EKF2_EV_QMIN at PX4's default 0) is a NO-GO naming it and its
+fix, `neso cmd px4_gateway arm` is refused, and put back it is a GO again; an operator's override arms (an event and
+the published verdict say so); a vehicle that already has a global origin keeps it: the restarted gateway sends none
+(before: SET_GPS_GLOBAL_ORIGIN every second until PX4 reported the gateway's own, forever for another origin)."""
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+from pymavlink import mavutil
+
+from flight.px4_params import checked
+from runtime.client import command
+from runtime.schema import PreflightMsg
+from tests.busutil import role_pid, wait_for
+from tests.px4.conftest import px4_flight
+
+WRONG = {  # a value PX4 accepts and the table refuses, per required parameter (flight/px4_params.py)
+    "EKF2_GPS_CTRL": 7, "EKF2_MAG_TYPE": 0, "EKF2_EV_CTRL": 11, "EKF2_HGT_REF": 0, "EKF2_EV_QMIN": 0,
+    "COM_OBL_RC_ACT": 1, "COM_OF_LOSS_T": 1.0, "NAV_RCL_ACT": 2, "MIS_TAKEOFF_ALT": 2.5, "EKF2_EV_DELAY": 50.0,
+}
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    with px4_flight(tmp_path_factory, "--mission", "idle") as f:
+        yield f
+
+
+def param_set(flight, name: str, value: float):
+    return command(flight.s, flight.probe.keys, "px4_gateway", "param_set", {"name": name, "value": value},
+                   timeout_s=8.0)
+
+
+def preflight(flight):
+    done = flight.cli("preflight", "--timeout", "30")
+    return done.returncode, done.stdout
+
+
+def test_every_required_parameter_has_a_wrong_value_here():
+    assert set(WRONG) == {p.name for p in checked()}
+
+
+def test_an_arm_before_ekf2_has_settled_is_refused_in_words(flight):
+    """Right after the gateway connects, before PX4's "Ready for takeoff": the operator's arm (overriding the
+    gateway's own gate, to reach PX4) is refused by PX4, and the reply says why in words (before: "arm: ActionError:
+    COMMAND_DENIED; origin: arm(); params: ()")."""
+    wait_for("the gateway connects to PX4", lambda: flight.log("connected to autopilot system"), 60, 0.02)
+    reply = flight.cmd("px4_gateway", "arm", override=True)
+    print(f"\narm before EKF2 settled: {reply.message}")
+    assert not reply.ok and reply.message.startswith("arm refused by the vehicle: "), reply.message
+    assert "not ready: " in reply.message and "ActionError" not in reply.message
+
+
+def test_the_generated_airframe_is_a_go(flight):
+    """As an operator does: `neso preflight` until it says GO (PX4's own checks pass ~2 s after the motion capture
+    starts; its time sync converges ~10 s after the gateway connects)."""
+    wait_for("PX4 says it is ready for takeoff", lambda: flight.log("Ready for takeoff"), 60)
+    start, runs = time.monotonic(), []
+    while time.monotonic() - start < 30.0:
+        code, out = preflight(flight)
+        runs.append((round(time.monotonic() - start, 1), out.splitlines()[-1]))
+        if code == 0:
+            break
+        time.sleep(1.0)
+    print(f"\n{out}\nneso preflight runs (s after 'Ready for takeoff', verdict): {runs}")
+    assert code == 0 and out.splitlines()[-1].startswith("GO: "), out
+    assert "PX4 v1.16.0" in out and "EKF2 fuses the motion capture" in out
+
+
+def test_each_required_parameter_wrong_in_turn_is_a_no_go_naming_it_and_arming_is_refused(flight):
+    for name, wrong in WRONG.items():
+        severity = next(p.required.severity for p in checked() if p.name == name)
+        assert param_set(flight, name, wrong).ok
+        code, out = preflight(flight)
+        line = next(line for line in out.splitlines() if line.split()[1:2] == [name])
+        if severity == "no-go":
+            assert code == 1 and line.startswith("NO-GO") and f"→ param set {name} " in line, out
+            assert out.splitlines()[-1] == f"NO-GO: {name}", out
+            refused = flight.cmd("px4_gateway", "arm")
+            assert not refused.ok and f"preflight NO-GO: {name}" in refused.message, refused.message
+        else:
+            assert code == 0 and line.startswith("WARNING") and f"→ param set {name} " in line, out
+        print(f"{name} {wrong}: {line.strip()}")
+        telemetry = flight.telemetry()
+        assert telemetry is not None and not telemetry.armed, "neso up's vehicle did not arm"
+        right = float(next(p.world for p in checked() if p.name == name))
+        assert param_set(flight, name, right).ok
+    code, out = preflight(flight)
+    assert code == 0, out
+
+
+def test_an_operators_override_arms_on_a_no_go_and_says_so(flight):
+    """The override is an event and goes with every published verdict while the vehicle is armed (the recorder
+    keeps both with the flight)."""
+    verdicts: list[PreflightMsg] = []
+    sub = flight.s.declare_subscriber(flight.probe.keys.topic("preflight"),
+                                      lambda sample: verdicts.append(PreflightMsg.from_bytes(sample.payload.to_bytes())))
+    assert param_set(flight, "EKF2_EV_QMIN", 0).ok
+    preflight(flight)
+    reply = flight.cmd("px4_gateway", "arm", override=True)
+    assert reply.ok, reply.message
+    wait_for("PX4 armed", lambda: (t := flight.telemetry()) is not None and t.armed, 10)
+    assert flight.log("armed on a preflight NO-GO by the operator's override: EKF2_EV_QMIN: 0")
+    time.sleep(2.5)
+    sub.undeclare()
+    assert sum("override: EKF2_EV_QMIN: 0" in v.override and not v.go for v in verdicts) >= 2, verdicts[-1:]
+    assert flight.cmd("px4_gateway", "disarm").ok
+    wait_for("PX4 disarmed", lambda: (t := flight.telemetry()) is not None and not t.armed, 10)
+    assert param_set(flight, "EKF2_EV_QMIN", 1).ok
+
+
+def test_a_vehicle_with_a_global_origin_keeps_it_and_a_restarted_gateway_sends_none(flight):
+    """PX4 given another origin (as a GPS or a first ground station gives it), then the gateway restarted: it asks,
+    hears the vehicle's origin and sends none; PX4 prints one "New NED origin" per origin it takes."""
+    def origins() -> int:
+        return sum("New NED origin" in line for line in flight.output)
+
+    wait_for("the gateway set the origin", lambda: flight.log("the vehicle's global origin is set"), 30)
+    instance = _instance_of(flight)  # PX4 SITL instance i: offboard link on UDP 14580 + i, system id i + 1
+    conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{14580 + instance}", source_system=254, dialect="common")
+    before = origins()
+    for _ in range(3):  # UDP: say it more than once
+        conn.mav.set_gps_global_origin_send(instance + 1, 473000000, 85000000, 500000, 0)
+        time.sleep(0.2)
+    conn.close()
+    wait_for("PX4 takes the other origin", lambda: origins() > before, 10)
+    taken = origins()
+    restarted = time.monotonic()
+    os.kill(role_pid(flight.proc.pid, "px4_gateway"), signal.SIGKILL)
+    wait_for("the restarted gateway hears the vehicle's origin",
+             lambda: flight.log("the vehicle has a global origin already (47.3000000°, 8.5000000°"), 60)
+    time.sleep(5.0)  # the old gateway re-sent its own every second: a mismatch went on forever
+    print(f"\norigins PX4 took: {taken} before the restart, {origins()} {time.monotonic() - restarted:.0f} s after")
+    assert origins() == taken
+
+
+def _instance_of(flight) -> int:
+    for line in flight.output:
+        if "neso px4: PX4 SITL instance " in line:
+            return int(line.split("instance ")[1].split()[0])
+    raise AssertionError("PX4's instance is not in the output")
+
+
+def test_px4_dates_external_vision_by_the_capture_time(flight):
+    """PX4's own log (its ULog, read while it runs): once its time sync with the gateway has converged, each
+    external-vision sample is dated by the capture the gateway put in ODOMETRY's time_usec, ~10 ms (the world's mocap
+    latency) before it arrived; before (time_usec 0, or no time sync) PX4 dated it on arrival."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+    from pyulog import ULog
+
+    workdir = Path(tempfile.gettempdir()) / f"neso-px4-{os.getuid()}-{_instance_of(flight)}-uav1"
+    ulog = max(workdir.glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
+    data = ULog(str(ulog), ["vehicle_visual_odometry"]).data_list[0].data
+    age_ms = (data["timestamp"].astype(np.int64) - data["timestamp_sample"].astype(np.int64)) / 1e3
+    t_s = data["timestamp"] / 1e6
+    first = int(np.argmax(age_ms > 1.0))
+    print(f"\n{ulog.name}: PX4 dates external vision by its capture from {t_s[first] - t_s[0]:.1f} s after the first "
+          f"sample; then {np.median(age_ms[first:]):.1f} ms before arrival (median; p1 {np.percentile(age_ms[first:], 1):.1f}, "
+          f"p99 {np.percentile(age_ms[first:], 99):.1f})")
+    assert age_ms[0] == 0.0 and first > 0, "dated on arrival before the time sync converged"
+    assert 5.0 < np.median(age_ms[-100:]) < 15.0, "then by the capture: the world's 10 ms mocap latency"
