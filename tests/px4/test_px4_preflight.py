@@ -27,7 +27,7 @@ WRONG = {  # a value PX4 accepts and the table refuses, per required parameter (
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
-    with px4_flight(tmp_path_factory, "--mission", "idle") as f:
+    with px4_flight(tmp_path_factory, "--mission", "idle", "--time-sync") as f:
         yield f
 
 
