@@ -59,6 +59,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--mass-kg", type=float, default=ctl.mass_kg,
                    help="the vehicle's mass as the controller flies it (its thrust in newtons is for it); the estimator "
                         "certifies what flies for it, and refuses a network with a thrust input made for another mass")
+    p.add_argument("--time-sync", action="store_true",
+                   help="the px4_gateway answers PX4's TIMESYNC and dates ODOMETRY by the capture (see neso run "
+                        "px4_gateway -h; off by default)")
     p.add_argument("--px4-params", default="",
                    help="--vehicle px4: PX4 SITL's airframe file (default: the world's, sim/px4/neso_quad.params; "
                         "another one rehearses a vehicle set up otherwise: `neso preflight` names what is wrong)")
@@ -138,6 +141,7 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
     elif role == "px4_gateway":
         port = OFFBOARD_UDP_PORT + args.px4_instance + index if args.vehicle == "px4" else args.mavlink_port + index
         specific = ["--mavlink", f"udpin://127.0.0.1:{port}", "--forward-sources", "sim,mocap"]
+        specific += ["--time-sync"] if args.time_sync else []
     if role == "source" and args.mocap == "natnet":
         specific += ["--mocap-stream", "natnet", "--natnet-up-axis", args.natnet_up_axis, "--natnet-lost",
                      args.natnet_lost, "--natnet-jitter", str(args.natnet_jitter), "--natnet-version",

@@ -7,7 +7,9 @@ What is checked (the px4_gateway gathers the inputs: :class:`PreflightInputs`; t
 - **the autopilot**: connected, its version (the table was read from PX4 v1.16.0's sources), PX4's own pre-arm
   checks (MAVSDK's ``health.is_armable``);
 - **EKF2 fusing the motion capture**: PX4 reports a valid local position and it agrees with the motion capture's
-  (what no parameter shows: a frame or axis mix-up, a heading not aligned);
+  (what no parameter shows: a frame or axis mix-up, a heading not aligned, a height off by the origin's altitude);
+- **the global origin**: PX4's Hold (the offboard-loss action) needs one indoors, and with vision height it must be
+  at 0 m (:func:`_origin`);
 - **the motion capture**: the rigid body tracked now, states arriving, the stream's rate, latency and jitter from
   Motive's own timestamps (:mod:`flight.mocap_time`, the source's health), its longest gap;
 - **the bus and every service**: each of the loop's services alive and reporting health;
@@ -35,6 +37,7 @@ class PreflightConfig:
 
     control_rate_hz: float = 50.0  # one state per control period: the loop's rate (neso.types.LOOP_RATE_HZ)
     ev_agreement_m: float = 0.05  # PX4's position vs the motion capture's: EKF2 fusing it agrees to mm-cm
+    origin_alt_max_m: float = 0.5  # |the global origin's altitude| with vision height (see _origin)
     mocap_latency_warn_ms: float = 30.0  # the world's mocap latency is 10 ms; a lab's Motive ~5-15 ms
     mocap_jitter_warn_ms: float = 10.0  # p99 - p50 of capture → arrival: a fifth of a control period
     state_age_max_s: float = 0.5  # no state for this long: the source's stream-stopped threshold
@@ -59,8 +62,9 @@ class ServiceSeen:
 class PreflightInputs:
     """What the gateway gathered. ``params``: the checked parameters read from the vehicle (None: the vehicle has
     no such parameter); ``params_error``: why they could not be read ("" when they were). ``ev_offset_m``: PX4's
-    horizontal position minus the motion capture's, norm (None: unknown; PX4's local height may carry an offset
-    from its global origin's altitude, EKF2's setAltOrigin). ``mocap``: the source's health counters
+    horizontal position minus the motion capture's, norm, and ``ev_height_offset_m`` its height minus the motion
+    capture's (None: unknown). ``origin_alt_m``: the altitude of the global origin the vehicle reported (None: none
+    reported). ``mocap``: the source's health counters
     (:class:`flight.mocap_time.StreamStats` figures, ``rigid_body_tracked``); ``state_age_s``: since the last
     state reached the gateway. ``delay_ms``: motion capture → PX4 (p50, p99; None: not measured);
     ``px4_uses_capture_time``: PX4's time sync with the gateway has converged, so it takes ODOMETRY's
@@ -76,6 +80,8 @@ class PreflightInputs:
     params_error: str = ""
     local_position_ok: bool | None = None
     ev_offset_m: float | None = None
+    ev_height_offset_m: float | None = None
+    origin_alt_m: float | None = None
     mocap: dict[str, float] = field(default_factory=dict)
     state_age_s: float = math.inf
     services: dict[str, ServiceSeen] = field(default_factory=dict)
@@ -131,7 +137,7 @@ def table_from_items(items: dict[str, list[str]]) -> str:
 def preflight(inputs: PreflightInputs, config: PreflightConfig = PreflightConfig()) -> Verdict:
     """The verdict (module docstring)."""
     items: list[Item] = [*_autopilot(inputs), *_parameters(inputs, config), *_estimator(inputs, config),
-                         *_mocap(inputs, config), *_services(inputs, config), _certificate(inputs), _battery(inputs, config)]
+                         *_origin(inputs, config), *_mocap(inputs, config), *_services(inputs, config), _certificate(inputs), _battery(inputs, config)]
     return Verdict(tuple(items))
 
 
@@ -210,8 +216,39 @@ def _estimator(i: PreflightInputs, c: PreflightConfig) -> list[Item]:
                      f"PX4's horizontal position is {i.ev_offset_m * 100:.1f} cm from the motion capture's",
                      "the rigid body's axes (--frame, Motive's up axis) or EKF2's heading: restart PX4 with the "
                      "vehicle still and the motion capture streaming")]
+    height = i.ev_height_offset_m
+    if height is not None and abs(height) > c.ev_agreement_m:
+        return [Item("EKF2 fuses the motion capture", NO_GO,
+                     f"PX4's height is {height:+.2f} m from the motion capture's (horizontal within "
+                     f"{i.ev_offset_m * 100:.1f} cm)",
+                     "a global origin above 0 m (see the global origin's item) or the rigid body's up axis; restart "
+                     "PX4 with the vehicle still and the motion capture streaming")]
+    vertical = "its height valid" if height is None else f"its height within {abs(height) * 100:.1f} cm"
     return [Item("EKF2 fuses the motion capture", GO, f"PX4's horizontal position within {i.ev_offset_m * 100:.1f} cm "
-                                                      "of the motion capture's; its vertical position valid")]
+                                                      f"of the motion capture's; {vertical}")]
+
+
+def _origin(i: PreflightInputs, c: PreflightConfig) -> list[Item]:
+    """PX4 v1.16's EKF2 (re)starts vision height fusion as an altitude above sea level (ev_height_control.cpp:
+    ``resetAltitudeTo(-measurement)``, without the origin's altitude): with vision height (EKF2_HGT_REF 3) and an
+    origin at A m, its local height is A m off after every restart of it — at boot, and after each motion-capture
+    gap longer than EKF2's vision timeout. A Hold entered before such a gap then climbs at full speed to the
+    altitude it held (measured in SITL: origin 488 m, a 1.9 s gap, 2.8 m/s up to 8.8 m). At 0 m the two agree."""
+    if not i.connected:
+        return []
+    if i.origin_alt_m is None:
+        return [Item("global origin", WARNING, "the vehicle reported none yet",
+                     "the gateway sends --global-origin once EKF2 has a local position; without one PX4 refuses Hold, "
+                     "its offboard-loss action (COM_OBL_RC_ACT)")]
+    vision_height = i.params.get("EKF2_HGT_REF") == 3
+    if vision_height and abs(i.origin_alt_m) > c.origin_alt_max_m:
+        return [Item("global origin", NO_GO,
+                     f"at {i.origin_alt_m:g} m with vision height: PX4 v1.16 restarts vision height without the "
+                     f"origin's altitude, so after a motion-capture gap its height is {i.origin_alt_m:g} m off and "
+                     "Hold climbs at full speed",
+                     "an origin at 0 m: reboot PX4 and let the gateway give it (--global-origin lat,lon,0, the "
+                     "default)")]
+    return [Item("global origin", GO, f"at {i.origin_alt_m:g} m")]
 
 
 def _mocap(i: PreflightInputs, c: PreflightConfig) -> list[Item]:

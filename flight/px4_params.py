@@ -155,12 +155,13 @@ GROUPS: tuple[Group, ...] = (
            Px4Param("EKF2_HGT_REF", "int32", 3,
                     "height from the motion capture, not the barometer (it drifts indoors and in ground effect)",
                     EKF2_MODULE, Requirement(values=(3,), meanings={3: "Vision"}, fix=3)),
-           Px4Param("EKF2_EV_DELAY", "float", 0.0,
-                    "EKF2 fuses each sample this long before its timestamp. The gateway stamps ODOMETRY with the "
-                    "pose's capture time and answers PX4's time sync, so PX4 uses that time once the sync has "
-                    "converged (measured in SITL: 9.4 s after the first pose; then PX4 dates each sample 9.0 ms "
-                    "before its arrival, the world's 10 ms mocap latency): 0 then, as PX4's guide says for synced "
-                    "timestamps; a PX4 that stamps on arrival needs the delay preflight measures", EKF2_EV,
+           Px4Param("EKF2_EV_DELAY", "float", 10.0,
+                    "EKF2 fuses each sample this long before its timestamp. By default PX4 stamps each pose on "
+                    "arrival, so this is the mocap-to-PX4 latency preflight measures (the world's 10 ms). With the "
+                    "gateway's --time-sync it stamps ODOMETRY with the pose's capture time and answers PX4's time "
+                    "sync, and PX4 uses that time once the sync has converged (measured in SITL: 9.4 s after the "
+                    "first pose; then PX4 dates each sample 9.0 ms before its arrival): 0 then, as PX4's guide says "
+                    "for synced timestamps", EKF2_EV,
                     Requirement(measured=True, unit="ms", severity="warning")),
            Px4Param("EKF2_EVP_NOISE", "float", 0.01, "the world's mocap position noise, at PX4's minimum", EKF2_EV),
            Px4Param("EKF2_EVV_NOISE", "float", 0.1, "the world's mocap velocity noise", EKF2_EV),

@@ -287,18 +287,17 @@ class GatewayPreflight:
             delay = link.core.delay_to_vehicle_ms((rtt or 0.0) / 2)
             mocap = self.watch.source_counters()
             network = self.watch.network
-        offset = None  # horizontal: PX4's local z may be shifted by its global origin's altitude (EKF2 setAltOrigin,
-        # ekf_helper.cpp; measured in SITL: 487.95 m with the origin at 488 m, the motion capture at -0.05 m)
+        offset = height = None
         if pose is not None and pose_s is not None and now - pose_s < 0.5 and t.get("local_position_ok"):
-            x, y, _ = pose.pos_enu_m
-            n, e, _ = t["pos_ned"]
-            offset = math.dist((n, e), (y, x))
+            x, y, z = pose.pos_enu_m
+            n, e, d = t["pos_ned"]
+            offset, height = math.dist((n, e), (y, x)), -d - z
         params, error = self.params
         return PreflightInputs(
             connected=connected, autopilot=t["autopilot"], armable=t.get("armable"),
             armable_why=link.px4_warning() if t.get("armable") is False else "", params=params,
             params_error=error if connected else "", local_position_ok=t.get("local_position_ok"),
-            ev_offset_m=offset, mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
+            ev_offset_m=offset, ev_height_offset_m=height, origin_alt_m=t.get("origin_alt_m"), mocap=mocap, state_age_s=now - pose_s if pose_s is not None else math.inf,
             services=self.watch.services(link.node.alive_services(), now), delay_ms=delay,
             px4_uses_capture_time=ts is not None and ts.px4_converged(), time_sync_answers=ts.answered if ts else 0,
             certificate=self.certificate.verdict(network),
