@@ -236,15 +236,16 @@ class GatewayPreflight:
 
     def arm_gate(self, override: bool) -> str:
         """Why an arm command is refused ("" when it may go on): the newest preflight verdict (a fresh check if it
-        is older than ``preflight_fresh_s``) says no-go and the operator did not override it. An override is an
-        event and goes into the published verdict (both recorded)."""
+        is older than ``preflight_fresh_s``, or if it says no-go: what failed may have passed since, as PX4's own
+        checks do ~2 s after the motion capture starts) says no-go and the operator did not override it. An
+        override is an event and goes into the published verdict (both recorded)."""
         link = self.link
         verdict = self.verdict
         fresh = verdict is not None and time.monotonic() - self.verdict_s <= link.config.preflight_fresh_s
         if override and not fresh:  # no verdict to override yet: said so, not waited for
             link.node.event("warning", "armed by the operator's override before preflight had judged the vehicle")
             return ""
-        if not fresh:
+        if not fresh or not verdict.go:
             verdict = self.check()
         if verdict.go:
             return ""

@@ -196,6 +196,8 @@ def test_commands_are_answered_with_the_vehicles_acknowledgement(flight):
 def test_arm_takeoff_hover_landing_test_and_land_through_the_gateway(flight):
     # as an operator does with PX4: its "Ready for takeoff!" first (external vision settled; on its console)
     wait_for("the simulated PX4 says it is ready for takeoff", lambda: flight.said("Ready for takeoff"), 30)
+    # and `neso preflight` until GO (docs/first-flight.md): on a loaded machine the services report later
+    wait_for("preflight says GO", lambda: flight.cmd("px4_gateway", "preflight").ok, 60, 1.0)
     armed = flight.cmd("px4_gateway", "arm")
     assert armed.ok, armed.message
     assert flight.commands(400)[-1]["params"][0] == 1.0
