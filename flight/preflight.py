@@ -137,7 +137,8 @@ def table_from_items(items: dict[str, list[str]]) -> str:
 def preflight(inputs: PreflightInputs, config: PreflightConfig = PreflightConfig()) -> Verdict:
     """The verdict (module docstring)."""
     items: list[Item] = [*_autopilot(inputs), *_parameters(inputs, config), *_estimator(inputs, config),
-                         *_origin(inputs, config), *_mocap(inputs, config), *_services(inputs, config), _certificate(inputs), _battery(inputs, config)]
+                         *_origin(inputs, config), *_mocap(inputs, config), *_services(inputs, config),
+                         _certificate(inputs), _battery(inputs, config)]
     return Verdict(tuple(items))
 
 
