@@ -544,10 +544,13 @@ def restart_world(probe, cmd) -> float:
 
 
 def fly_lemniscate(probe, cmd, since_s: float) -> Run:
-    """In the world that began at ``since_s``: command the lemniscate once its clock reaches
-    ``PAIRED_START_T_S`` and wait until it is over."""
-    probe.wait_for("state", lambda m: m.stamp_s >= since_s and m.t_s >= PAIRED_START_T_S, 30.0)
-    reply = cmd("controller", "lemniscate")
+    """In the world that began at ``since_s``: the lemniscate, started by the controller at the world's
+    ``PAIRED_START_T_S`` (sent with the command, so its latency does not move the start: under load a command sent
+    when the clock got there began 11 samples late), and wait until it is over."""
+    # sent 2 s ahead: the controller has begun this world's flight (a new world restarts its mission) and the
+    # command's latency, up to those 2 s, no longer decides when the lemniscate begins
+    probe.wait_for("state", lambda m: m.stamp_s >= since_s and m.t_s >= PAIRED_START_T_S - 2.0, 30.0)
+    reply = cmd("controller", "lemniscate", at_t_s=PAIRED_START_T_S)
     assert reply.ok, reply.message
     ours = lambda m: m.stamp_s >= since_s  # noqa: E731
     first = probe.wait_for("reference", lambda m: ours(m) and m.segment == "lemniscate", 30.0)

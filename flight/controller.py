@@ -190,7 +190,12 @@ class ControllerCore:
             return False, f"on the ground (idle), nothing to {name}"
         if name in _NEEDS_ARMING and not self.armed:
             return False, f"{name} needs the vehicle armed (send arm first)"
+        at_t_s = args.get("at_t_s")
+        if at_t_s is not None and not isinstance(at_t_s, (int, float)):
+            return False, f"at_t_s must be the world time in s at which {name} starts, not {at_t_s!r}"
         self._pending_command = (name, dict(args))
+        if at_t_s is not None:  # a start on the world's clock, whatever the command's latency (paired runs)
+            return True, f"{name} starts at the first sample at or after world t = {at_t_s:.2f} s"
         return True, f"{name} starts at the next sample"
 
     def apply_gains(self, values: dict) -> None:
@@ -283,7 +288,8 @@ class ControllerCore:
         self._pending = None
         if p.state.seq <= self._last_stepped:
             return []
-        if self._pending_command is not None:
+        at_t_s = self._pending_command[1].get("at_t_s") if self._pending_command is not None else None
+        if self._pending_command is not None and (at_t_s is None or p.state.t_s >= at_t_s - 1e-9):
             name, _ = self._pending_command
             self._pending_command = None
             if name == "hold":

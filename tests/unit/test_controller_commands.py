@@ -87,3 +87,16 @@ def test_a_land_ends_with_motors_idle_when_the_vehicle_rests_on_its_feet_above_t
     assert thrusts[-1] == 0.0 and thrusts[10] > 0.0
     assert any("landed" in text for _, text in core.events)
     assert core.mission.segment == "idle"
+
+
+def test_a_command_given_a_world_time_starts_at_that_sample_whatever_its_latency():
+    """``at_t_s``: the mission starts at the first sample at or after that world time (paired runs of `neso demo
+    tdr` start each lemniscate at the same world time, however late the command came); a wrong value is refused."""
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
+    step(core, 0, 1.0)
+    ok, why = core.command("landing_test", {"at_t_s": 0.1})  # sample 4's world time (t = 0.02 (seq + 1))
+    assert ok and "world t = 0.10 s" in why
+    segments = [step(core, k, 1.0)[1].segment for k in range(1, 7)]
+    assert segments == ["hover", "hover", "hover", "transit", "transit", "transit"], segments  # its transit first
+    ok, why = core.command("landing_test", {"at_t_s": "soon"})
+    assert not ok and "at_t_s" in why
