@@ -5,7 +5,9 @@ workers run files side by side (``-n``, tests/README.md), the wall-clock span fr
 last test's end; the run's whole span last."""
 from __future__ import annotations
 
+import functools
 import os
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -52,17 +54,30 @@ FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
 
 
+#: A file of a flying tier whose tests fly nothing in real time (real `neso` subprocesses that compute: offline
+#: training, log import) says so with ``pytestmark = pytest.mark.offline``; it runs beside the flights, not among them.
+OFFLINE_MARK = re.compile(r"^pytestmark = .*pytest\.mark\.offline\b", re.MULTILINE)
+
+
+@functools.cache
+def flies(relative: str) -> bool:
+    """Whether the test file ``relative`` (under tests/) flies in real time: its tier is a flying one and it is not
+    marked ``offline``."""
+    return relative.split("/")[0] in FLIGHT_TIERS and not OFFLINE_MARK.search((TESTS / relative).read_text())
+
+
 def worker_group(nodeid: str) -> str:
-    """The unit of work a test is in: every flying tier's file in one group (they run one after another), else its
-    file (a module's tests share its fixtures, so they never split over workers)."""
+    """The unit of work a test is in: every file that :func:`flies` in one group (they run one after another), else
+    its file (a module's tests share its fixtures, so they never split over workers)."""
     relative = nodeid.split("::")[0].removeprefix("tests/")
-    return "flights" if relative.split("/")[0] in FLIGHT_TIERS else relative
+    return "flights" if flies(relative) else relative
 
 
 def pytest_runtest_setup(item):
-    """A worker that computes (unit, sim, bus) yields the CPU to the one that flies: nice 10 from its first such test
-    on (the flying worker takes computing tests only once every flight is done, so no flight ever runs niced)."""
-    if os.environ.get("PYTEST_XDIST_WORKER") and tier_of(item.path) not in FLIGHT_TIERS:
+    """A worker that computes (unit, sim, bus, offline files) yields the CPU to the one that flies: nice 10 from its
+    first such test on (the flying worker takes computing tests only once every flight is done, so no flight ever runs
+    niced)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") and not flies(str(Path(item.path).resolve().relative_to(TESTS))):
         if os.getpriority(os.PRIO_PROCESS, 0) < COMPUTE_NICE:
             os.setpriority(os.PRIO_PROCESS, 0, COMPUTE_NICE)
 

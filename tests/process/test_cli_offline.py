@@ -7,11 +7,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from neso.learning import recipe_of
 from neso.netfile import load_network
 from flight.estimator import DEFAULT_NETWORK
 from tests.busutil import REPO, free_port
 from tests.helpers import EXAMPLE, flight_messages, write_recording
+
+pytestmark = pytest.mark.offline  # offline training and the registry: no flight (runs beside the flights: tests/conftest.py)
 
 
 def neso_run(*args: str, timeout_s: float = 180.0) -> subprocess.CompletedProcess:

@@ -7,8 +7,12 @@ import shutil
 import subprocess
 import sys
 
+import pytest
+
 from bench.nanobench import SUBSET, subset_files
 from tests.busutil import REPO
+
+pytestmark = pytest.mark.offline  # CSV import: no flight (runs beside the flights: tests/conftest.py)
 
 
 def run(*args: str, timeout_s: float = 120.0) -> tuple[int, str]:

@@ -8,9 +8,13 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 from recordings.reader import read_recording, rerun_cli
 from tests.busutil import REPO, free_port, hub, neso, stop
 from tests.ulogfiles import CUBE_LOG, SITL_LOG, without_topics
+
+pytestmark = pytest.mark.offline  # log import, export and training from logs: no flight (runs beside the flights: tests/conftest.py)
 
 
 def run(*args: str, timeout_s: float = 120.0) -> tuple[int, str]:

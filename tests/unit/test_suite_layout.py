@@ -1,11 +1,12 @@
 """The test suite's own rules (tests/README.md): every test file in a tier folder, and no test module
-importing another (shared builders live in tests/helpers.py, tests/busutil.py, tests/browser/chromium.py)."""
+importing another (shared builders live in tests/helpers.py, tests/busutil.py, tests/browser/chromium.py), and
+the files of the flying tiers on one worker unless marked ``offline``."""
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
-from tests.conftest import TIERS
+from tests.conftest import FLIGHT_TIERS, OFFLINE_MARK, TIERS, worker_group
 
 TESTS = Path(__file__).resolve().parents[1]
 
@@ -27,3 +28,13 @@ def test_no_module_imports_a_test_module():
             offenders += [f"{path.relative_to(TESTS)}: {n}" for n in names
                           if n.startswith("tests.") and n.rsplit(".", 1)[-1].startswith("test_")]
     assert offenders == [], "move what they share to tests/helpers.py"
+
+
+def test_the_flying_tiers_files_fly_on_one_worker_unless_marked_offline():
+    files = sorted(p.relative_to(TESTS).as_posix() for p in TESTS.rglob("test_*.py"))
+    marked = {f for f in files if OFFLINE_MARK.search((TESTS / f).read_text())}
+    assert marked and all(f.split("/")[0] in FLIGHT_TIERS for f in marked), "offline means: of a flying tier"
+    for f in files:
+        group = worker_group(f"tests/{f}::test_x")
+        flying = f.split("/")[0] in FLIGHT_TIERS and f not in marked
+        assert group == ("flights" if flying else f), (f, group)
