@@ -52,9 +52,10 @@ WORKERS ?= 2
 test: setup
 	$(PY) -m pytest -n $(WORKERS) --durations=20
 
-# The tiers without real-time processes or a browser, for every edit.
+# The tiers without real-time processes or a browser, for every edit: their slow tests (each over ~30 s alone: the
+# real-flight benchmark, the paper pipeline, the tuning neighbourhoods) are left to make test.
 test-fast: setup
-	$(PY) -m pytest -m "unit or sim or bus" -n 2 --durations=10
+	$(PY) -m pytest -m "(unit or sim or bus) and not slow" -n 2 --durations=10
 
 bench: setup
 	$(PY) -m bench

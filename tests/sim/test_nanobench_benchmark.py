@@ -4,8 +4,12 @@ labels' mean, and the neural ESO's composite estimate f_N + Δf̂ (its network t
 tracks the residual more closely than the ESO alone. The figures are printed with ``-s``."""
 from __future__ import annotations
 
+import pytest
+
 from bench.nanobench import (CERTIFIED, COMPOSITE, ESO, LINEAR, MEAN, RESIDUAL, BenchConfig, benchmark, subset_files,
                              summary, table_rows)
+
+pytestmark = pytest.mark.slow  # ~60 s alone: in make test, not make test-fast
 
 
 def test_certified_recipe_beats_the_linear_map_and_the_mean_and_the_composite_beats_the_eso(tmp_path):

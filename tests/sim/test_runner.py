@@ -123,6 +123,7 @@ def test_the_flight_certificates_bound_holds_in_simulated_flights(network, scena
     assert worst_cm <= cert.bound_cm
 
 
+@pytest.mark.slow  # ~40 s alone: the whole paper pipeline; in make test, not make test-fast
 def test_paper_pipeline_cli_writes_the_documented_json(tmp_path):
     """The pipeline end to end through the CLI, with the tuned baseline at the gains the search states
     (tests/sim/test_tuning.py flies the search itself)."""

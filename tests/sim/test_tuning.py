@@ -19,6 +19,7 @@ def neighbours(values: tuple[float, ...], v: float) -> tuple[float, ...]:
     return values[max(0, i - 1):i + 2]
 
 
+@pytest.mark.slow  # ~30 s alone: two searches' neighbourhoods flown; in make test, not make test-fast
 @pytest.mark.parametrize("kind", ["lemniscate", "landing"])
 def test_the_stated_tuned_gains_are_what_the_search_finds_among_their_neighbours(kind):
     """The search is seeded and deterministic: on the default grid's neighbours of TUNED_GAINS (and the paper's
