@@ -358,9 +358,9 @@ def test_screenshots_at_1600x1000_and_1280x800(flight):
                 page.close()
 
 
-def setpoint_stream(flight, seconds: float) -> tuple[int, float]:
-    """(samples the controller skipped, largest gap between setpoints in s) over the next ``seconds``.
-    The gap is between the controller's own stamps (one monotonic clock on this machine): when this
+def setpoint_stream(flight, seconds: float) -> tuple[int, float, float]:
+    """(samples the controller skipped, its slowest answer to a state in s, the largest gap between setpoints in s)
+    over the next ``seconds``. Times are the services' own stamps (one monotonic clock on this machine): when this
     test process is starved its arrivals bunch up, which says nothing about the flight."""
     with flight.probe.lock:
         n0 = len(flight.probe.messages["setpoint"])
@@ -369,21 +369,31 @@ def setpoint_stream(flight, seconds: float) -> tuple[int, float]:
         setpoints = flight.probe.messages["setpoint"][n0:]
     seqs = [m.seq for m in setpoints]
     assert len(seqs) > seconds * 25, f"only {len(seqs)} setpoints in {seconds} s"
-    return seqs[-1] - seqs[0] + 1 - len(seqs), float(np.max(np.diff([m.stamp_s for m in setpoints])))
+    answer_s = max(m.stamp_s - m.state_stamp_s for m in setpoints)
+    return seqs[-1] - seqs[0] + 1 - len(seqs), answer_s, float(np.max(np.diff([m.stamp_s for m in setpoints])))
 
 
 def test_kill_the_dashboard_mid_flight_the_flight_goes_on_and_a_restart_picks_it_up(flight):
+    """The loop never stops: the controller answers every state (none skipped beyond the window before) and each
+    within 0.25 s (a period is 20 ms), measured from the state's own stamp. The largest gap between setpoints is a
+    figure, not the claim (before, it was: < 0.25 s): it is the source's too when the machine starves the whole loop
+    (three runs with one core busy: the largest setpoint gaps, 45-120 ms, were the states' own, one world period
+    apart, since the simulated world steps once per state), and it reached 0.45 s (0.10 s before the kill) in a full
+    `make test` with one core busy while the supervisor restarted the dashboard. The controller answering a state
+    late is what says the kill reached the flight, and this asserts it."""
     pid = flight.dashboard_pid()
     assert pid is not None, "no dashboard process under neso up"
-    skipped_before, gap_before = setpoint_stream(flight, 3.0)
+    skipped_before, answer_before, gap_before = setpoint_stream(flight, 3.0)
     killed_at = time.monotonic()
     os.kill(pid, signal.SIGKILL)
-    skipped_after, gap_after = setpoint_stream(flight, 3.0)
+    skipped_after, answer_after, gap_after = setpoint_stream(flight, 3.0)
     FIGURES["dashboard_kill"] = {"skipped_samples_3s_before": skipped_before, "skipped_samples_3s_after": skipped_after,
+                                 "slowest_answer_ms_before": round(answer_before * 1e3, 1),
+                                 "slowest_answer_ms_after": round(answer_after * 1e3, 1),
                                  "max_setpoint_gap_ms_before": round(gap_before * 1e3, 1),
                                  "max_setpoint_gap_ms_after": round(gap_after * 1e3, 1)}
     print("setpoints around kill -9 of the dashboard:", FIGURES["dashboard_kill"])
-    assert gap_after < max(0.25, 1.5 * gap_before), (gap_before, gap_after)  # never stopped (a period is 20 ms)
+    assert answer_after < max(0.25, 1.5 * answer_before), (answer_before, answer_after)  # never stopped
     # no worse than the loaded machine already was, within 10 % of the window's 150 samples: the supervisor's
     # restart of the dashboard (at nice 10) runs in these seconds on a machine whose other core may be busy
     assert skipped_after <= max(15, 3 * skipped_before), (skipped_before, skipped_after)
