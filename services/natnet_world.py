@@ -15,6 +15,7 @@ as the source's own ``--link mavlink`` does: a PX4 vehicle in a room with OptiTr
 """
 from __future__ import annotations
 
+import math
 import signal
 import time
 
@@ -33,6 +34,13 @@ def _mavlink_vehicle(config: SourceConfig, core: SimSource):
     return MavlinkVehicle(VehicleConfig(target=config.mavlink_out, log_path=config.mavlink_log,
                                         hover_thrust_norm=core.sim.config.params.hover_thrust_norm),
                           dt_s=1.0 / config.rate_hz, console=lambda text: print(f"[source] {text}", flush=True))
+
+
+def skip_ahead_s(late_s: float, frame_s: float) -> float:
+    """How far a world ``late_s`` behind the wall clock moves its clock on: the whole Motive frames (``frame_s``
+    each) that cover it. Before, it moved by ``late_s`` itself, so on a loaded machine a state's time stepped off
+    Motive's frame grid (0.78 ms off it, `tests/process/test_natnet_jitter.py` with one core busy)."""
+    return math.ceil(late_s / frame_s - 1e-9) * frame_s
 
 
 def stream_model(config: SourceConfig, latency_s: float) -> StreamModel:
@@ -82,9 +90,11 @@ def run_world(conn, config: SourceConfig) -> None:
             delay = next_tick - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            elif delay < -period:  # fell behind by more than a period: the world's clock moves on with the wall's
-                stream.anchor_s -= delay
-                next_tick = time.monotonic()
+            elif delay < -period:  # fell behind by more than a period: the world's clock moves on with the wall's,
+                # by whole Motive frames, as a real Motive's exposures stay on its frame grid whatever a world does
+                skip = skip_ahead_s(-delay, 1.0 / nn.rate_hz)
+                stream.anchor_s += skip
+                next_tick += skip
     except (EOFError, BrokenPipeError, OSError):
         return
     finally:

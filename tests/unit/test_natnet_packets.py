@@ -14,6 +14,7 @@ from natnet.server_info import ServerInfo as TheirServerInfo
 from natnet.version import Version
 
 from flight.source import FRAMES, MocapConfig, MocapSource, NatNetStreamConfig
+from services.natnet_world import skip_ahead_s
 from sim import natnet
 
 V41 = Version(4, 1, 0, 0)
@@ -213,3 +214,12 @@ def test_the_source_refuses_a_natnet_stream_it_cannot_run_in_one_line():
     assert "start:duration" in natnet_refusal(replace(ok, natnet=NatNetStreamConfig(lost="1-2")))
     for rate in (50.0, 400.0, 120.5):
         assert "100-360" in natnet_refusal(replace(ok, natnet=NatNetStreamConfig(rate_hz=rate)))
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 360.0])
+def test_a_late_simulated_world_moves_motives_exposures_on_by_whole_frames(rate_hz):
+    frame_s = 1.0 / rate_hz
+    for late_s in (0.0207, 0.02, 0.0451, 0.31, 1.0):
+        skip = skip_ahead_s(late_s, frame_s)
+        frames = skip / frame_s
+        assert abs(frames - round(frames)) < 1e-9 and late_s - 1e-12 <= skip < late_s + frame_s, (late_s, skip)
