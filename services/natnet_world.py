@@ -92,7 +92,7 @@ def run_world(conn, config: SourceConfig) -> None:
                 time.sleep(delay)
             elif delay < -period:  # fell behind by more than a period: the world's clock moves on with the wall's,
                 # by whole Motive frames, as a real Motive's exposures stay on its frame grid whatever a world does
-                skip = skip_ahead_s(-delay, 1.0 / nn.rate_hz)
+                skip = skip_ahead_s(-delay, 1.0 / core.scenario.mocap.rate_hz)  # rate 0: the model's
                 stream.anchor_s += skip
                 next_tick += skip
     except (EOFError, BrokenPipeError, OSError):
