@@ -55,11 +55,16 @@ def test_the_landing_test_over_natnet_tracks_like_the_direct_source_and_the_reco
     natnet_dir, direct_dir = str(tmp_path / "natnet"), str(tmp_path / "direct")
     flights = {"natnet": up("natnet", natnet_dir, "--mission", "hover"),
                "direct": up("direct", direct_dir, "--mission", "hover")}
-    for f in flights.values():  # both hovering for 2 s, then the landing test in the same moment
-        f.probe.wait_for("state", lambda m: m.seq > 100, 30.0)
-    for f in flights.values():
-        reply = command(f.s, f.probe.keys, "controller", "landing_test", {}, timeout_s=8.0)
-        assert reply.ok, reply
+    try:
+        for f in flights.values():  # both hovering for 2 s, then the landing test in the same moment
+            f.probe.wait_for("state", lambda m: m.seq > 100, 30.0)
+        for f in flights.values():
+            reply = command(f.s, f.probe.keys, "controller", "landing_test", {}, timeout_s=8.0)
+            assert reply.ok, reply
+    except BaseException:  # both flights stopped, whatever failed (a failure here once left one running)
+        for f in flights.values():
+            f.close()
+        raise
     outs = {k: finish(f) for k, f in flights.items()}
     rms = {k: tracking_rms_m(f) for k, f in flights.items()}
     landing = {k: final_height_error_m(f) for k, f in flights.items()}
