@@ -220,8 +220,8 @@ class Px4Vehicle:
         shutil.rmtree(self.workdir, ignore_errors=True)
         release_px4_instance(self.instance)
         return {"instance": self.instance, "exchanges": self.world.exchanges, "unanswered": self.world.unanswered,
-                "link_dropped": self.link.dropped, "hover_thrust_learnt": round(self.gateway.core.hover_thrust_norm, 4),
-                "late_periods": self.late_periods,
+                "link_dropped": self.link.dropped, "link_stalls": self.link.stalls,
+                "hover_thrust_learnt": round(self.gateway.core.hover_thrust_norm, 4), "late_periods": self.late_periods,
                 "not_offboard_periods": self.not_offboard_periods, "px4_said": self.texts[-5:],
                 "autopilot": self.autopilot}
 

@@ -15,22 +15,23 @@ REPORT_PERIOD_S = 10.0
 
 def px4_in_the_loop(node, config, sim) -> AutopilotInTheLoop:
     """``sim`` (a :class:`sim.quadrotor.QuadrotorSim`) with PX4 SITL commanding its rotors; the link's
-    connects and drops are logged and raised as events."""
+    connects, stalls and drops are logged and raised as events."""
     def report(line: str) -> None:
         node.log(line)
-        node.event("warning" if "dropped" in line else "info", line)
+        node.event("warning" if "dropped" in line or "not answering" in line else "info", line)
 
     link = Px4SimLink(config.px4_port, connect_log=report)
     node.log(f"PX4 simulator link listening on TCP 127.0.0.1:{config.px4_port} (PX4 SITL connects; lockstep)")
     world = AutopilotInTheLoop(sim, link.exchange, HilSensors(seed=config.seed))
-    threading.Thread(target=_report, args=(node, world), name="px4-world-report", daemon=True).start()
+    threading.Thread(target=_report, args=(node, world, link), name="px4-world-report", daemon=True).start()
     return world
 
 
-def _report(node, world: AutopilotInTheLoop) -> None:
+def _report(node, world: AutopilotInTheLoop, link: Px4SimLink) -> None:
     """Every ``REPORT_PERIOD_S``: what PX4 answered and how often its motor outputs saturated in the air."""
     while not node.wait(REPORT_PERIOD_S):
         share = 100.0 * world.saturated / world.airborne if world.airborne else 0.0
-        node.log(f"PX4 link: {world.exchanges} sensor exchanges answered, {world.unanswered} unanswered; in the air "
+        node.log(f"PX4 link: {world.exchanges} sensor exchanges answered, {world.unanswered} unanswered ({link.stalls} "
+                 f"stalls, {link.stale} late answers skipped); in the air "
                  f"{world.airborne}, of them {world.saturated} ({share:.2f} %) with a motor output within 1 % of "
                  "0 or 1")

@@ -5,9 +5,13 @@ start -c 4560``: PX4 is the client of localhost:4560 + instance), and every exch
 through :meth:`Px4SimLink.exchange`.
 
 As Gazebo Classic's ``mavlink_interface`` does it: until PX4's first actuator message the world does not
-wait for one (PX4 is booting), afterwards it waits up to ``reply_timeout_s`` for each; a PX4 that stops
-answering (killed, crashed) is dropped, the motors go off (as ESCs do without their autopilot's signal),
-and the link accepts the next PX4 that connects.
+wait for one (PX4 is booting), afterwards it waits up to ``reply_timeout_s`` for each. A PX4 that does not
+answer within it *stalls* the link: the world stops waiting for it (the motors go off, as ESCs do without their
+autopilot's signal) and sends its next sensors, and lockstep resumes at PX4's next answer. The connection is
+kept: PX4 SITL connects once at boot and never again, so dropping it made a passing stall permanent (on a
+loaded machine PX4 once waited for the world's next sensors while the world waited for its answer, both ~1 s;
+the world dropped the link and PX4 froze for good). A PX4 that closes the connection (killed, crashed) is
+dropped, and the link accepts the next PX4 that connects.
 """
 from __future__ import annotations
 
@@ -23,8 +27,13 @@ from sim.px4_hil import HilSensor
 class Px4SimLink:
     """``exchange(sensor)`` → PX4's 16 actuator outputs, or None (no PX4, or it did not answer).
 
-    Counters: ``sent`` sensors, ``received`` actuator messages, ``connections`` accepted, ``dropped``
-    connections given up on; ``heartbeat`` the newest HEARTBEAT PX4 sent here (its armed flag in
+    An answer is PX4's first actuator message stamped at or after the sensors' ``time_usec`` (PX4 stamps it with
+    its lockstep clock, which the sensors set): one stamped earlier answers sensors sent before (sent while the world
+    was not waiting, at boot or after a stall) and is skipped, so the world never flies one exchange behind.
+
+    Counters: ``sent`` sensors, ``received`` actuator messages, ``stale`` of them skipped as answers to earlier
+    sensors, ``connections`` accepted, ``dropped`` connections closed or failed, ``stalls`` times PX4 did not
+    answer within ``reply_timeout_s``; ``heartbeat`` the newest HEARTBEAT PX4 sent here (its armed flag in
     ``base_mode``), ``last_text`` its newest STATUSTEXT on this link."""
 
     def __init__(self, port: int = 4560, *, host: str = "127.0.0.1", reply_timeout_s: float = 1.0,
@@ -42,7 +51,9 @@ class Px4SimLink:
         self._parser = mavlink2.MAVLink(None)
         self._answering = False  # PX4 has sent its first HIL_ACTUATOR_CONTROLS on this connection
         self._controls: tuple[float, ...] | None = None
-        self.sent = self.received = self.connections = self.dropped = 0
+        self.sent = self.received = self.stale = self.connections = self.dropped = self.stalls = 0
+        self._sent_usec = 0  # the newest sensors' time_usec: answers stamped before it are stale
+        self._stalled_at_s: float | None = None  # time.monotonic() of the stall PX4 has not yet answered after
         self.heartbeat = None
         self.last_text = ""
 
@@ -62,14 +73,17 @@ class Px4SimLink:
             self._drop(f"send failed: {exc}")
             return None
         self.sent += 1
+        self._sent_usec = sensor.time_usec
         self._controls = None
-        deadline = time.monotonic() + (self.reply_timeout_s if self._answering else 0.0)
+        start = time.monotonic()
         while self._controls is None and self._conn is not None:
+            # waiting only while PX4 answers (a late answer to earlier sensors says it does again)
+            deadline = start + (self.reply_timeout_s if self._answering else 0.0)
             wait = max(0.0, deadline - time.monotonic())
             if not self._read(wait) and time.monotonic() >= deadline:
                 break
         if self._controls is None and self._answering:
-            self._drop(f"no HIL_ACTUATOR_CONTROLS within {self.reply_timeout_s:.1f} s")
+            self._stall()
         return self._controls
 
     def close(self) -> None:
@@ -107,18 +121,32 @@ class Px4SimLink:
         for msg in self._parser.parse_buffer(data) or ():
             kind = msg.get_type()
             if kind == "HIL_ACTUATOR_CONTROLS":
-                self._controls = tuple(msg.controls)
                 self._answering = True
                 self.received += 1
+                if msg.time_usec < self._sent_usec:
+                    self.stale += 1
+                    continue
+                self._controls = tuple(msg.controls)
+                if self._stalled_at_s is not None:
+                    self.log(f"PX4 answers again after {time.monotonic() - self._stalled_at_s:.1f} s: lockstep resumed")
+                    self._stalled_at_s = None
             elif kind == "HEARTBEAT":
                 self.heartbeat = msg
             elif kind == "STATUSTEXT":
                 self.last_text = msg.text
         return True
 
+    def _stall(self) -> None:
+        """PX4 did not answer the sensors just sent: no waiting for it until it answers again (the connection kept)."""
+        self._answering = False
+        self.stalls += 1
+        self._stalled_at_s = time.monotonic()
+        self.log(f"PX4 not answering (no HIL_ACTUATOR_CONTROLS within {self.reply_timeout_s:.1f} s): motors off, "
+                 "the world goes on sending sensors without waiting until PX4 answers again")
+
     def _drop(self, why: str) -> None:
         if self._conn is not None:
             self._conn.close()
-        self._conn, self._answering, self._controls = None, False, None
+        self._conn, self._answering, self._controls, self._stalled_at_s = None, False, None, None
         self.dropped += 1
         self.log(f"PX4 link dropped ({why}); motors off, waiting for PX4 to connect again")

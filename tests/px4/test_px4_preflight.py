@@ -4,9 +4,11 @@ required parameter set wrong in turn over MAVLink (and EKF2_EV_QMIN at PX4's def
 fix, `neso cmd px4_gateway arm` is refused, and put back it is a GO again; an operator's override arms (an event and
 the published verdict say so); a vehicle that already has a global origin keeps it: the restarted gateway sends none
 (before: SET_GPS_GLOBAL_ORIGIN every second until PX4 reported the gateway's own, forever for another origin), and
-preflight says no-go for it when it is above 0 m (PX4 v1.16's vision height drops the origin's altitude)."""
+preflight says no-go for it when it is above 0 m (PX4 v1.16's vision height drops the origin's altitude); PX4 frozen
+longer than the world waits for its answer resumes lockstep on its connection."""
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -17,7 +19,7 @@ from pymavlink import mavutil
 from flight.px4_params import checked
 from runtime.client import command
 from runtime.schema import PreflightMsg
-from tests.busutil import role_pid, wait_for
+from tests.busutil import children_of, role_pid, wait_for
 from tests.px4.conftest import px4_flight
 
 WRONG = {  # a value PX4 accepts and the table refuses, per required parameter (flight/px4_params.py)
@@ -176,3 +178,41 @@ def test_px4_dates_external_vision_by_the_capture_time(flight):
           f"p99 {np.percentile(age_ms[first:], 99):.1f})")
     assert age_ms[0] == 0.0 and first > 0, "dated on arrival before the time sync converged"
     assert 5.0 < np.median(age_ms[-100:]) < 15.0, "then by the capture: the world's 10 ms mocap latency"
+
+
+def _px4_firmware_pid(flight) -> int:
+    """The PX4 SITL binary's pid among the launcher's descendants."""
+    todo, seen = [flight.proc.pid], []
+    while todo:
+        pid = todo.pop()
+        seen.append(pid)
+        todo += children_of(pid)
+    for pid in seen:
+        with contextlib.suppress(FileNotFoundError):
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if f.read().split(b"\0")[0].endswith(b"/bin/px4"):
+                    return pid
+    raise AssertionError("no PX4 SITL process under the launcher")
+
+
+def test_px4_stopped_longer_than_the_world_waits_resumes_lockstep_on_the_same_connection(flight):
+    """PX4 frozen for 1.5 s (SIGSTOP), longer than the world waits for an answer (1 s), then let go: the world stops
+    waiting, keeps the connection, and lockstep resumes at PX4's next answers; PX4 answers a parameter set again.
+    Before: the world dropped the connection; PX4 SITL connects once at boot and never again, so it froze for good
+    (CI: after 'poll timeout' under load, the three tests above this one failed: no state, parameter sets timed out,
+    the origin never taken)."""
+    mark = len(flight.output)
+    pid = _px4_firmware_pid(flight)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(1.5)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    wait_for("the world says PX4 answers again", lambda: any("PX4 answers again" in line
+                                                              for line in flight.output[mark:]), 20)
+    said = flight.output[mark:]
+    assert any("PX4 not answering" in line for line in said), said[-20:]
+    assert not any("PX4 link dropped" in line for line in said), said[-20:]
+    seq = flight.probe.get("state")[-1].seq
+    wait_for("states flow again", lambda: flight.probe.get("state")[-1].seq > seq + 50, 10)
+    assert param_set(flight, "MIS_TAKEOFF_ALT", 1.0).ok, "PX4 answers MAVLink again"
