@@ -37,7 +37,7 @@ def test_the_paper_experiments_fly_on_px4_and_the_json_is_real(tmp_path):
     assert res["gains"] == "paper"
     for f in flights:  # each flight happened: PX4 answered every sensor period of it in the air, and armed itself
         assert f["airborne_exchanges"] > 5 * 50 * 10 and f["exchanges"] > f["airborne_exchanges"]
-        assert f["link_dropped"] == 0 and f["armed_after_s"] > 0 and f["airborne_at_start_s"] > f["armed_after_s"] / 2
+        assert f["link_dropped"] == 0 and f["link_stalls"] == 0 and f["armed_after_s"] > 0 and f["airborne_at_start_s"] > f["armed_after_s"] / 2
         assert 0.0 <= f["saturated_percent"] <= 100.0
         assert 0.05 < f["hover_thrust_learnt"] < 0.95
         assert f["not_offboard_periods"] == 0  # PX4 flew our setpoints the whole experiment, no failsafe of its own
