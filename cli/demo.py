@@ -238,7 +238,6 @@ def analyse(probe, first_run: Run, second_run: Run, swap_seq: int, report: TdrRe
         fsteps[name] = _steps({m.seq: m.f_hat_mps2[2] for m in estimates})
         if name == "first":
             report.f_n_jump_at_swap_mps2 = _steps({m.seq: m.f_n_mps2[2] for m in estimates}).get(swap_seq, float("nan"))
-        if name == "first":
             report.swap_answered = swap_seq in good and swap_seq + 1 in good
     report.missed_setpoints = len(missed["first"]) + len(missed["second"])
     report.missed_near_swap = sum(1 for k in missed["first"] if abs(k - swap_seq) <= 25)
