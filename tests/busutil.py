@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
+from typing import Callable
 
 from runtime.bus import BusConfig, hub_config, open_session
 
@@ -183,3 +184,32 @@ def wait_for(what: str, check, timeout_s: float, every_s: float = 0.2):
             return value
         time.sleep(every_s)
     raise AssertionError(f"not within {timeout_s:.0f} s: {what}")
+
+
+def flood_windows(session, keys, payloads: dict[str, list[bytes]], latest_seq: Callable[[], int], windows: int,
+                  per_key_per_s: int = 2000) -> dict[str, list[tuple[int, int]]]:
+    """``windows`` 1 s windows, quiet and flooded in turn (quiet first), on ``session``: in each flooded one
+    ``per_key_per_s`` of ``payloads[topic]`` (the next ones in order) put on every topic's key, 100 at a time, paced
+    over the second; sent to the other processes only (``Locality.REMOTE``: this session's own subscribers, e.g. a
+    probe, never decode them). The ``(first, end)`` samples (``latest_seq()`` at each window's edges) per kind,
+    ``"quiet"`` and ``"flood"``."""
+    import zenoh
+
+    pubs = {t: session.declare_publisher(keys.topic(t), congestion_control=zenoh.CongestionControl.BLOCK,
+                                         allowed_destination=zenoh.Locality.REMOTE) for t in payloads}
+    spans: dict[str, list[tuple[int, int]]] = {"quiet": [], "flood": []}
+    try:
+        for w in range(windows):
+            kind, first, t0 = ("flood" if w % 2 else "quiet"), latest_seq(), time.monotonic()
+            if kind == "flood":
+                for j, i in enumerate(range(w // 2 * per_key_per_s, (w // 2 + 1) * per_key_per_s)):
+                    for topic, sent in payloads.items():
+                        pubs[topic].put(sent[i])
+                    if j % 100 == 99:
+                        time.sleep(max(0.0, t0 + (j + 1) / per_key_per_s - time.monotonic()))
+            time.sleep(max(0.0, t0 + 1.0 - time.monotonic()))
+            spans[kind].append((first, latest_seq()))
+    finally:
+        for pub in pubs.values():
+            pub.undeclare()
+    return spans

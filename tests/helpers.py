@@ -8,6 +8,7 @@ Test modules import from these three, never from each other.
 from __future__ import annotations
 
 import json
+import random
 import struct
 import sys
 import threading
@@ -21,9 +22,9 @@ from neso.network import LipschitzMLP
 from neso.rotations import world_from_body_zyx
 from neso.types import StateMeasurement
 from recordings.writer import FlightWriter
-from runtime.schema import (CommandReply, CommandRequest, EstimateMsg, EventMsg, HealthMsg, Message, NetworkMsg,
+from runtime.schema import (TOPICS, CommandReply, CommandRequest, EstimateMsg, EventMsg, HealthMsg, Message, NetworkMsg,
                             ParamReply, ParamRequest, ParamStateMsg, RecordingMsg, ReferenceMsg, ReplayMsg, SetpointMsg,
-                            PreflightMsg, StateMsg, TelemetryMsg, TruthMsg)
+                            PreflightMsg, SchemaError, StateMsg, TelemetryMsg, TruthMsg)
 
 REPO = Path(__file__).resolve().parents[1]
 BASE = str(REPO / "networks" / "base.safetensors")  # the network the estimator flies by default
@@ -286,3 +287,36 @@ def race_the_next_wait(loop, event, update) -> threading.Event:
         return original()
     loop.create_future = create_future
     return ran
+
+
+def malformed(valid: bytes, rng: random.Random) -> bytes:
+    """A payload that may not be a valid message: random bytes, or ``valid`` broken somehow (cut short, a wrong
+    version, a field missing or of a wrong kind)."""
+    import msgpack
+
+    body = msgpack.unpackb(valid)
+    kind = rng.randrange(6)
+    if kind == 0:
+        return bytes(rng.getrandbits(8) for _ in range(rng.randrange(0, 300)))
+    if kind == 1:
+        return valid[: rng.randrange(0, len(valid))]
+    if kind == 2:
+        return msgpack.packb({**body, "v": rng.choice([0, 2, 99, "1", None])})
+    name = rng.choice([k for k in body if k not in ("v", "type")])
+    if kind == 3:
+        del body[name]
+        return msgpack.packb(body)
+    value = rng.choice([float("nan"), float("inf"), -1, 1e12, "x", None, [1.0], {"a": 1}, True, b"\x00"])
+    return msgpack.packb({**body, name: value})
+
+
+def malformed_payloads(topic: str, valid: bytes, n: int, rng: random.Random) -> list[bytes]:
+    """``n`` payloads for ``topic`` built by :func:`malformed` from ``valid`` that its schema really refuses."""
+    payloads = []
+    while len(payloads) < n:
+        p = malformed(valid, rng)
+        try:
+            TOPICS[topic].from_bytes(p)
+        except SchemaError:
+            payloads.append(p)  # only ever send what really is invalid
+    return payloads

@@ -14,14 +14,13 @@ import subprocess
 import tempfile
 import time
 
-import msgpack
 import numpy as np
 import pytest
 
 from runtime.client import get_params, set_params
-from runtime.schema import TOPICS, EventMsg, HealthMsg, Keys, ParamStateMsg, SchemaError
-from tests.busutil import REPO, NesoUp, children_of, free_port, neso, peer, role_pid, stop
-from tests.helpers import FORCE_STEP_LIMIT_N, max_force_step_n
+from runtime.schema import EventMsg, HealthMsg, Keys, ParamStateMsg
+from tests.busutil import REPO, NesoUp, children_of, flood_windows, free_port, neso, peer, role_pid, stop
+from tests.helpers import FORCE_STEP_LIMIT_N, malformed_payloads, max_force_step_n
 
 KEYS = Keys("uav1")
 
@@ -161,62 +160,18 @@ def test_the_services_refuse_changes_outside_the_certificate_with_the_margin_unl
             sub.undeclare()
 
 
-def _malformed(valid: bytes, rng: random.Random) -> bytes:
-    """A payload that is not a valid message (random bytes, or a valid one broken somehow)."""
-    body = msgpack.unpackb(valid)
-    kind = rng.randrange(6)
-    if kind == 0:
-        return bytes(rng.getrandbits(8) for _ in range(rng.randrange(0, 300)))
-    if kind == 1:
-        return valid[: rng.randrange(0, len(valid))]
-    if kind == 2:
-        return msgpack.packb({**body, "v": rng.choice([0, 2, 99, "1", None])})
-    name = rng.choice([k for k in body if k not in ("v", "type")])
-    if kind == 3:
-        del body[name]
-        return msgpack.packb(body)
-    value = rng.choice([float("nan"), float("inf"), -1, 1e12, "x", None, [1.0], {"a": 1}, True, b"\x00"])
-    return msgpack.packb({**body, name: value})
-
-
 def test_ten_thousand_malformed_payloads_per_key_are_counted_and_the_flight_goes_on(flight):
     rng = random.Random(1)
-    counts = {}
-    for topic in ("state", "setpoint", "estimate"):
-        valid = flight.probe.get(topic)[-1].to_bytes()
-        payloads = []
-        while len(payloads) < 10_000:
-            p = _malformed(valid, rng)
-            try:
-                TOPICS[topic].from_bytes(p)
-            except SchemaError:
-                payloads.append(p)  # only ever send what really is invalid
-        counts[topic] = payloads
+    counts = {t: malformed_payloads(t, flight.probe.get(t)[-1].to_bytes(), 10_000, rng)
+              for t in ("state", "setpoint", "estimate")}
     pids = {r: flight.pid_of(r) for r in ("source", "estimator", "controller")}
     flight.wait_health(pids)  # run alone, the test comes before the services' first reports
     before = {s: dict(h.rejected) for s, h in flight.health.items()}
-    import zenoh
-
-    # REMOTE: to the services only, not to this session's own probe (decoding 6000 junk payloads a second here
-    # cost the machine a quarter of a core that a real flood, sent from elsewhere, does not take from the flight)
-    pubs = {t: flight.s.declare_publisher(KEYS.topic(t), congestion_control=zenoh.CongestionControl.BLOCK,
-                                          allowed_destination=zenoh.Locality.REMOTE)
-            for t in counts}
     # Ten 1 s windows, quiet and flooded in turn (2000 payloads per key in each flooded one: a flood, not a
-    # denial of service), so a burst of the shared machine's own load is as likely to fall on either kind.
-    windows: dict[str, list[tuple[int, int]]] = {"quiet": [], "flood": []}
-    for w in range(10):
-        kind, first, t0 = ("flood" if w % 2 else "quiet"), flight.latest_seq(), time.monotonic()
-        if kind == "flood":
-            for j, i in enumerate(range(w // 2 * 2000, (w // 2 + 1) * 2000)):
-                for topic, payloads in counts.items():
-                    pubs[topic].put(payloads[i])
-                if j % 100 == 99:
-                    time.sleep(max(0.0, t0 + (j + 1) / 2000 - time.monotonic()))
-        time.sleep(max(0.0, t0 + 1.0 - time.monotonic()))
-        windows[kind].append((first, flight.latest_seq()))
-    for pub in pubs.values():
-        pub.undeclare()
+    # denial of service), so a burst of the shared machine's own load is as likely to fall on either kind; the
+    # flood goes to the services only, not to this session's probe (decoding 6000 junk payloads a second here
+    # cost the machine a quarter of a core that a real flood, sent from elsewhere, does not take from the flight).
+    windows = flood_windows(flight.s, KEYS, counts, flight.latest_seq, 10)
     expected = {("estimator", "state"), ("controller", "state"), ("estimator", "setpoint"), ("source", "setpoint"),
                 ("controller", "estimate")}
 
