@@ -16,6 +16,8 @@ ACL, and routed through a secure hub; the pipeline plain beside ``--secure``; at
 rotated rounds each; also into ``out/bench.json`` (``"secure"``).
 Then recording (:mod:`bench.recording`, ~85 s): loop latency at 50 Hz with the recorder off beside on,
 the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
+Then a flood of malformed payloads in the real-time loop, quiet beside flooded 1 s windows: deadlines missed, estimate
+latency, each process's CPU and the CPU a rejected payload costs (:mod:`bench.flood`, ~35 s; ``"flood"``).
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
 Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
 (:mod:`bench.gateway`, ~25 s).
@@ -32,7 +34,7 @@ flights shipped in ``tests/data/nanobench/`` — the z residual's R² on held-ou
 paper recipe, the best linear map in the bound and the mean, the learned slopes near the ground, and the neural ESO's
 composite estimate against the ESO alone, replayed (``"nanobench"`` in ``out/bench.json``).
 Pass ``--quick`` (``make bench-quick``) for a subset a user runs in under 5 minutes: the core rows without the
-paper pipeline, the bus latency, the gateway, PX4 SITL in the loop, NatNet, PX4 log import, the certificates and NanoBench,
+paper pipeline, the bus latency, the flood, the gateway, PX4 SITL in the loop, NatNet, PX4 log import, the certificates and NanoBench,
 each shortened; the rest is listed as not run. Every run ends with a table of each section's wall time
 (``"section_wall_s"`` in ``out/bench.json``).
 
@@ -146,6 +148,12 @@ def recording_section(quick: bool) -> None:
     print_table(COLUMNS, recording_rows(quick))
 
 
+def flood_section(quick: bool) -> None:
+    from bench.flood import print_flood
+
+    print_flood(quick)
+
+
 def tdr_section(quick: bool) -> None:
     from bench.tdr import COLUMNS, tdr_rows
 
@@ -203,6 +211,7 @@ SECTIONS = (
     ("hot path, handlers, transport", hotpath_section, False),
     ("secure bus", secure_section, False),
     ("recording", recording_section, False),
+    ("flood", flood_section, True),
     ("TDR loop", tdr_section, False),
     ("PX4 gateway", gateway_section, True),
     ("PX4 SITL in the loop", px4_section, True),
