@@ -19,6 +19,7 @@ TESTS = Path(__file__).resolve().parent
 _seconds: dict[str, float] = defaultdict(float)
 _counts: dict[str, int] = defaultdict(int)
 _spans: dict[str, list[float]] = {}  # group → [first start, last stop] (epoch s)
+_file_seconds: dict[str, float] = defaultdict(float)  # test file under tests/ → its tests' own time
 
 
 def tier_of(path: Path) -> str:
@@ -122,6 +123,7 @@ def pytest_runtest_logreport(report):
     tier = report.nodeid.split("/")[1] if report.nodeid.startswith("tests/") else ""
     if tier not in TIERS:
         return
+    _file_seconds[report.nodeid.split("::")[0].removeprefix("tests/")] += report.duration
     for group in (tier, "slow") if "slow" in report.keywords else (tier,):
         _seconds[group] += report.duration
         _counts[group] += report.when == "setup"
@@ -144,3 +146,11 @@ def pytest_terminal_summary(terminalreporter):
     spans = [_spans[t] for t in TIERS if t in _spans]
     wall = max(s[1] for s in spans) - min(s[0] for s in spans)
     terminalreporter.write_line(f"{'all':<8} {total:8.1f} {wall:7.1f}  {sum(_counts[t] for t in TIERS):4d} tests")
+    lanes = {"flying": 0.0, "computing": 0.0}
+    for relative, seconds in _file_seconds.items():
+        lanes["flying" if flies(relative) else "computing"] += seconds
+    terminalreporter.write_line(f"lanes: flying {lanes['flying']:.1f} s (its files one after another on one worker: "
+                                f"with workers the run's floor), computing {lanes['computing']:.1f} s")
+    slowest = sorted(((s, f) for f, s in _file_seconds.items() if flies(f)), reverse=True)[:12]
+    if slowest:
+        terminalreporter.write_line("the flying lane's slowest files: " + ", ".join(f"{f} {s:.0f} s" for s, f in slowest))
