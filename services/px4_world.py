@@ -16,9 +16,9 @@ REPORT_PERIOD_S = 10.0
 def px4_in_the_loop(node, config, sim) -> AutopilotInTheLoop:
     """``sim`` (a :class:`sim.quadrotor.QuadrotorSim`) with PX4 SITL commanding its rotors; the link's
     connects, stalls and drops are logged and raised as events."""
-    def report(line: str) -> None:
+    def report(level: str, line: str) -> None:
         node.log(line)
-        node.event("warning" if "dropped" in line or "not answering" in line else "info", line)
+        node.event(level, line)
 
     link = Px4SimLink(config.px4_port, connect_log=report)
     node.log(f"PX4 simulator link listening on TCP 127.0.0.1:{config.px4_port} (PX4 SITL connects; lockstep)")

@@ -34,13 +34,14 @@ class Px4SimLink:
     Counters: ``sent`` sensors, ``received`` actuator messages, ``stale`` of them skipped as answers to earlier
     sensors, ``connections`` accepted, ``dropped`` connections closed or failed, ``stalls`` times PX4 did not
     answer within ``reply_timeout_s``; ``heartbeat`` the newest HEARTBEAT PX4 sent here (its armed flag in
-    ``base_mode``), ``last_text`` its newest STATUSTEXT on this link."""
+    ``base_mode``), ``last_text`` its newest STATUSTEXT on this link. ``connect_log(level, line)`` hears of every
+    connect, stall, resumption and drop (``level`` ``"info"``, or ``"warning"`` for a stall or a drop)."""
 
     def __init__(self, port: int = 4560, *, host: str = "127.0.0.1", reply_timeout_s: float = 1.0,
                  connect_log=None) -> None:
         self.address = (host, port)
         self.reply_timeout_s = reply_timeout_s
-        self.log = connect_log or (lambda line: None)
+        self.log = connect_log or (lambda level, line: None)
         self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._server.bind(self.address)
@@ -102,7 +103,7 @@ class Px4SimLink:
         self._conn, self._answering = conn, False
         self._parser = mavlink2.MAVLink(None)
         self.connections += 1
-        self.log(f"PX4 connected from {peer[0]}:{peer[1]}")
+        self.log("info", f"PX4 connected from {peer[0]}:{peer[1]}")
         return True
 
     def _read(self, timeout_s: float) -> bool:
@@ -128,7 +129,8 @@ class Px4SimLink:
                     continue
                 self._controls = tuple(msg.controls)
                 if self._stalled_at_s is not None:
-                    self.log(f"PX4 answers again after {time.monotonic() - self._stalled_at_s:.1f} s: lockstep resumed")
+                    self.log("info", f"PX4 answers again after {time.monotonic() - self._stalled_at_s:.1f} s: "
+                                     "lockstep resumed")
                     self._stalled_at_s = None
             elif kind == "HEARTBEAT":
                 self.heartbeat = msg
@@ -141,12 +143,12 @@ class Px4SimLink:
         self._answering = False
         self.stalls += 1
         self._stalled_at_s = time.monotonic()
-        self.log(f"PX4 not answering (no HIL_ACTUATOR_CONTROLS within {self.reply_timeout_s:.1f} s): motors off, "
-                 "the world goes on sending sensors without waiting until PX4 answers again")
+        self.log("warning", f"PX4 not answering (no HIL_ACTUATOR_CONTROLS within {self.reply_timeout_s:.1f} s): "
+                            "motors off, the world goes on sending sensors without waiting until PX4 answers again")
 
     def _drop(self, why: str) -> None:
         if self._conn is not None:
             self._conn.close()
         self._conn, self._answering, self._controls, self._stalled_at_s = None, False, None, None
         self.dropped += 1
-        self.log(f"PX4 link dropped ({why}); motors off, waiting for PX4 to connect again")
+        self.log("warning", f"PX4 link dropped ({why}); motors off, waiting for PX4 to connect again")

@@ -153,4 +153,5 @@ def pytest_terminal_summary(terminalreporter):
                                 f"with workers the run's floor), computing {lanes['computing']:.1f} s")
     slowest = sorted(((s, f) for f, s in _file_seconds.items() if flies(f)), reverse=True)[:12]
     if slowest:
-        terminalreporter.write_line("the flying lane's slowest files: " + ", ".join(f"{f} {s:.0f} s" for s, f in slowest))
+        terminalreporter.write_line("the flying lane's slowest files: " +
+                                    ", ".join(f"{f} {s:.0f} s" for s, f in slowest))

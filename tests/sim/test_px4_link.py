@@ -65,7 +65,7 @@ def sensor(k: int) -> HilSensor:
 @pytest.fixture
 def link():
     lines: list[str] = []
-    link = Px4SimLink(free_port(), reply_timeout_s=REPLY_TIMEOUT_S, connect_log=lines.append)
+    link = Px4SimLink(free_port(), reply_timeout_s=REPLY_TIMEOUT_S, connect_log=lambda _level, line: lines.append(line))
     link.lines = lines
     yield link
     link.close()
