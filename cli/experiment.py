@@ -50,6 +50,18 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    """The experiment, with the flight budgets found before on this machine known to it (each verified before use)
+    and the ones it finds kept for the next (services/certificate_cache.py)."""
+    from services.certificate_cache import adopt_budgets, keep_budgets
+
+    adopt_budgets()
+    try:
+        return _run(args)
+    finally:
+        keep_budgets()
+
+
+def _run(args) -> int:
     from dataclasses import replace
 
     from neso.learning import RECIPES

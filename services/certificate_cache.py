@@ -3,7 +3,12 @@ for its network and gains — after verifying every one in numpy exactly as the 
 (:func:`neso.certificate.roles.adopt_certificate`) — instead of importing cvxpy and solving SDPs again (measured:
 ~1.5 s of its start, most of it cvxpy's import). A missing, stale, unreadable or tampered entry is only ever a slower
 start: it is solved again and written back. One JSON file, ``$XDG_CACHE_HOME/neso/role-certificates.json`` (default
-``~/.cache``), replaced atomically."""
+``~/.cache``), replaced atomically.
+
+Flight budgets the same way (:func:`adopt_budgets`, :func:`keep_budgets`; ``flight-budgets.json`` beside it): the
+largest slope a recipe may spend at given gains, which the trainer and ``neso experiment paper`` bisect over ~17 role
+certificates (~10 s at the paper's gains), is verified with one (~0.6 s) when a process on this machine found it
+before. A wrong entry is at worst a smaller budget than the largest (still certified), never an uncertified one."""
 from __future__ import annotations
 
 import json
@@ -69,3 +74,63 @@ def warm_flight(slopes: NetworkSlopes, kp: float, kd: float, omega_o: float, pla
     envelope = ReferenceBounds.envelope(policy)
     return warm([role_inputs(slopes, kp, kd, omega_o, plant, envelope, policy),
                  role_inputs(NetworkSlopes(0.0), kp, kd, omega_o, plant, envelope, policy)], path)
+
+
+# ------------------------------------------------------------------------------------------------ flight budgets
+def budgets_version() -> str:
+    """The certificate's code as it is here (a digest of ``neso/certificate/*.py``): a budget found by other code is
+    not read, so an edit to the mathematics never meets a budget that only held before it."""
+    import hashlib
+
+    import neso.certificate
+
+    digest = hashlib.sha256()
+    for source in sorted(Path(neso.certificate.__file__).parent.glob("*.py")):
+        digest.update(source.name.encode() + b"\0" + source.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def budgets_path() -> Path:
+    """Beside the role certificates: ``$XDG_CACHE_HOME/neso/flight-budgets.json``."""
+    return cache_path().with_name("flight-budgets.json")
+
+
+def adopt_budgets(path: Path | None = None) -> int:
+    """Make the flight budgets found before (by any process on this machine) known to this one, each to be verified
+    before use (:func:`neso.certificate.flight.adopt_budget`); how many. A missing or unreadable file is none."""
+    from neso.certificate.flight import adopt_budget
+
+    try:
+        data = json.loads((path or budgets_path()).read_text())
+    except (OSError, ValueError):
+        return 0
+    budgets = data.get("budgets") if isinstance(data, dict) and data.get("version") == budgets_version() else None
+    if not isinstance(budgets, dict):
+        return 0
+    return sum(adopt_budget(key, value) for key, value in budgets.items() if isinstance(key, str))
+
+
+def keep_budgets(path: Path | None = None) -> str:
+    """Write the budgets this process found (:data:`neso.certificate.flight.FOUND_BUDGETS`) into the file, merged
+    with what is there, replaced atomically: "kept N", "nothing new", or "not kept: <why>"."""
+    from neso.certificate.flight import FOUND_BUDGETS
+
+    path = path or budgets_path()
+    try:
+        data = json.loads(path.read_text())
+        known = data["budgets"] if isinstance(data, dict) and data.get("version") == budgets_version() else {}
+    except (OSError, ValueError, KeyError):
+        known = {}
+    if not isinstance(known, dict):
+        known = {}
+    new = {k: v for k, v in FOUND_BUDGETS.items() if known.get(k) != v}
+    if not new:
+        return "nothing new"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=".flight-budgets-", delete=False) as f:
+            json.dump({"version": budgets_version(), "budgets": {**known, **new}}, f)
+        os.replace(f.name, path)
+    except OSError as exc:
+        return f"not kept: {exc}"
+    return f"kept {len(new)}"

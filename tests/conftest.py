@@ -83,6 +83,21 @@ def pytest_runtest_setup(item):
             os.setpriority(os.PRIO_PROCESS, 0, COMPUTE_NICE)
 
 
+def pytest_sessionstart(session):
+    """The flight budgets found before on this machine known to this process, as the trainer and `neso experiment
+    paper` know them (services/certificate_cache.py; each verified before use, never bisected again)."""
+    from services.certificate_cache import adopt_budgets
+
+    adopt_budgets()
+
+
+def pytest_sessionfinish(session):
+    """The budgets this process found, kept for the next run (and for the services its tests start later)."""
+    from services.certificate_cache import keep_budgets
+
+    keep_budgets()
+
+
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """With workers (``-n``): every :func:`worker_group` whole on one worker, in collection order (xdist's own

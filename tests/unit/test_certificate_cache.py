@@ -8,8 +8,9 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
-from neso.certificate import RoleInputs
+from neso.certificate import POLICY, RoleInputs
 from neso.certificate.roles import (adopt_certificate, adopt_frontier, certificate_data, certify_roles,
                                     frontier_certificate, max_certified_state_lipschitz)
 from neso.types import velocity_lag_s
@@ -67,3 +68,38 @@ def test_the_cache_is_written_once_and_adopted_without_cvxpy_in_a_fresh_process(
     assert run() == ["solved", "True"]
     path.write_text("not json")
     assert warm([RoleInputs(*GAINS, lipschitz_state=1.5, velocity_lag_s=LAG)], path=path) in ("adopted", "solved")
+
+
+@pytest.mark.slow  # one whole bisection (~10 s) at gains nothing else in the suite certifies: left to make test
+def test_a_flight_budget_found_before_is_verified_not_bisected_and_a_wrong_one_is_bisected_again(tmp_path):
+    """The trainer's and `neso experiment paper`'s budgets (services/certificate_cache.py: adopt_budgets,
+    keep_budgets): one kept by a process is taken by a fresh one after one verdict (two role certificates: the
+    network's at that slope, PD+ESO's), not the bisection's ~17; one that does not hold, or is no number, or was
+    found by other certificate code, is never used."""
+    from neso.certificate import LoopPlant
+    from neso.certificate.flight import FOUND_BUDGETS, adopt_budget, budget_key, flight_budget
+    from neso.control import ControlConfig
+    from services.certificate_cache import adopt_budgets, keep_budgets
+
+    plant = LoopPlant.of(ControlConfig())
+    budget = flight_budget(*GAINS, plant=plant, exogenous_fraction=0.05)
+    key = budget_key(*GAINS, plant, 0.05, ("attitude",), POLICY)
+    assert FOUND_BUDGETS[key] == budget > 0
+    path = tmp_path / "flight-budgets.json"
+    assert keep_budgets(path).startswith("kept") and keep_budgets(path) == "nothing new"
+    probe = ("from pathlib import Path; from neso.certificate import LoopPlant; "
+             "from neso.control import ControlConfig; "
+             "from neso.certificate.flight import flight_budget, flight_certificate; "
+             "from services.certificate_cache import adopt_budgets; "
+             f"n = adopt_budgets(Path({str(path)!r})); "
+             f"b = flight_budget(*{GAINS!r}, plant=LoopPlant.of(ControlConfig()), exogenous_fraction=0.05); "
+             "print(n, repr(b), flight_certificate.cache_info().misses)")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=120,
+                         env=dict(os.environ, PYTHONPATH=REPO))
+    adopted, found, asked = out.stdout.split() or [out.stderr] * 3  # asked: verdicts it had to find
+    assert (int(adopted), float(found), int(asked)) == (1, budget, 1), out.stdout + out.stderr
+    # above the largest that holds: verified, refused, bisected again (the bisection's verdicts are cached here)
+    assert adopt_budget(key, budget * 1.01) and flight_budget(*GAINS, plant=plant, exogenous_fraction=0.05) == budget
+    assert not any(adopt_budget(key, v) for v in ("x", None, -1.0, 0.0, float("nan"), float("inf")))
+    path.write_text(json.dumps({"version": "other code", "budgets": {key: budget}}))
+    assert adopt_budgets(path) == 0, "a budget found by other certificate code is not read"
