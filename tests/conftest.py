@@ -85,7 +85,7 @@ def pytest_runtest_setup(item):
 
 def pytest_sessionstart(session):
     """The flight budgets found before on this machine known to this process, as the trainer and `neso experiment
-    paper` know them (services/certificate_cache.py; each verified before use, never bisected again)."""
+    paper` know them (services/certificate_cache.py): each verified before use, one that fails is bisected again."""
     from services.certificate_cache import adopt_budgets
 
     adopt_budgets()
