@@ -97,7 +97,8 @@ def test_a_flight_budget_found_before_is_verified_not_bisected_and_a_wrong_one_i
     out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=120,
                          env=dict(os.environ, PYTHONPATH=REPO))
     adopted, found, asked = out.stdout.split() or [out.stderr] * 3  # asked: verdicts it had to find
-    assert (int(adopted), float(found), int(asked)) == (1, budget, 1), out.stdout + out.stderr
+    # the file holds every budget this worker found (others too, in a whole run); the fresh process asks only this one
+    assert int(adopted) >= 1 and (float(found), int(asked)) == (budget, 1), out.stdout + out.stderr
     # above the largest that holds: verified, refused, bisected again (the bisection's verdicts are cached here)
     assert adopt_budget(key, budget * 1.01) and flight_budget(*GAINS, plant=plant, exogenous_fraction=0.05) == budget
     assert not any(adopt_budget(key, v) for v in ("x", None, -1.0, 0.0, float("nan"), float("inf")))
