@@ -11,7 +11,6 @@ samples (what a machine with the flood's CPU to spare gives).
 """
 from __future__ import annotations
 
-import os
 import random
 import sys
 import tempfile
@@ -19,6 +18,7 @@ import time
 
 import numpy as np
 
+from bench.cpu import cpu_s
 from runtime.schema import Keys
 from tests.busutil import NesoUp, flood_windows, free_port, peer, roles_of
 from tests.helpers import malformed_payloads
@@ -29,17 +29,6 @@ PER_KEY_PER_S = 2000
 TOPICS = ("state", "setpoint", "estimate")
 ROLES = ("source", "estimator", "controller", "recorder")
 MISS_MARGIN = 0.05  # of the flooded samples: the target
-
-
-def _cpu_s(pids: dict[str, int]) -> dict[str, float]:
-    """CPU seconds (user + system) each process has used so far."""
-    tick = os.sysconf("SC_CLK_TCK")
-    used = {}
-    for role, pid in pids.items():
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        used[role] = (int(fields[11]) + int(fields[12])) / tick
-    return used
 
 
 def flood_rows(windows: int, results: dict) -> list[tuple[str, ...]]:
@@ -61,7 +50,7 @@ def flood_rows(windows: int, results: dict) -> list[tuple[str, ...]]:
         # start and end, in order
 
         def latest_seq() -> int:  # flood_windows asks at each window's start and end: the CPU is read there too
-            edges.append((time.monotonic(), _cpu_s(pids)))
+            edges.append((time.monotonic(), {r: cpu_s([pid]) for r, pid in pids.items()}))
             states = flight.probe.get("state")
             return states[-1].seq if states else -1
 
