@@ -56,15 +56,18 @@ def warm(questions: list[RoleInputs], path: Path | None = None) -> str:
     if not solved:
         return "adopted"
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        known = _read(path)
-        known.update(solved)
-        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=".role-certificates-", delete=False) as f:
-            json.dump({"version": VERSION, "certificates": known}, f)
-        os.replace(f.name, path)
+        _replace(path, {"version": VERSION, "certificates": {**_read(path), **solved}})
     except OSError as exc:
         return f"solved, not cached: {exc}"
     return "solved"
+
+
+def _replace(path: Path, data: dict) -> None:
+    """``data`` as the JSON file at ``path``, replaced atomically (its folder made if missing)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.stem}-", delete=False) as f:
+        json.dump(data, f)
+    os.replace(f.name, path)
 
 
 def warm_flight(slopes: NetworkSlopes, kp: float, kd: float, omega_o: float, plant: LoopPlant,
@@ -95,18 +98,22 @@ def budgets_path() -> Path:
     return cache_path().with_name("flight-budgets.json")
 
 
+def _read_budgets(path: Path) -> dict:
+    """The budgets in the file at ``path`` written by this certificate code; none if missing, unreadable or other."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    budgets = data.get("budgets") if isinstance(data, dict) and data.get("version") == budgets_version() else None
+    return budgets if isinstance(budgets, dict) else {}
+
+
 def adopt_budgets(path: Path | None = None) -> int:
     """Make the flight budgets found before (by any process on this machine) known to this one, each to be verified
     before use (:func:`neso.certificate.flight.adopt_budget`); how many. A missing or unreadable file is none."""
     from neso.certificate.flight import adopt_budget
 
-    try:
-        data = json.loads((path or budgets_path()).read_text())
-    except (OSError, ValueError):
-        return 0
-    budgets = data.get("budgets") if isinstance(data, dict) and data.get("version") == budgets_version() else None
-    if not isinstance(budgets, dict):
-        return 0
+    budgets = _read_budgets(path or budgets_path())
     return sum(adopt_budget(key, value) for key, value in budgets.items() if isinstance(key, str))
 
 
@@ -116,21 +123,12 @@ def keep_budgets(path: Path | None = None) -> str:
     from neso.certificate.flight import FOUND_BUDGETS
 
     path = path or budgets_path()
-    try:
-        data = json.loads(path.read_text())
-        known = data["budgets"] if isinstance(data, dict) and data.get("version") == budgets_version() else {}
-    except (OSError, ValueError, KeyError):
-        known = {}
-    if not isinstance(known, dict):
-        known = {}
+    known = _read_budgets(path)
     new = {k: v for k, v in FOUND_BUDGETS.items() if known.get(k) != v}
     if not new:
         return "nothing new"
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=".flight-budgets-", delete=False) as f:
-            json.dump({"version": budgets_version(), "budgets": {**known, **new}}, f)
-        os.replace(f.name, path)
+        _replace(path, {"version": budgets_version(), "budgets": {**known, **new}})
     except OSError as exc:
         return f"not kept: {exc}"
     return f"kept {len(new)}"
