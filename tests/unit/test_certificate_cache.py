@@ -99,8 +99,13 @@ def test_a_flight_budget_found_before_is_verified_not_bisected_and_a_wrong_one_i
     adopted, found, asked = out.stdout.split() or [out.stderr] * 3  # asked: verdicts it had to find
     # the file holds every budget this worker found (others too, in a whole run); the fresh process asks only this one
     assert int(adopted) >= 1 and (float(found), int(asked)) == (budget, 1), out.stdout + out.stderr
-    # above the largest that holds: verified, refused, bisected again (the bisection's verdicts are cached here)
-    assert adopt_budget(key, budget * 1.01) and flight_budget(*GAINS, plant=plant, exogenous_fraction=0.05) == budget
+    # above the largest that holds: verified, refused, bisected again, to the bisection's tolerance (1e-4 relative)
+    # of the first. Exact equality failed 1 of 6 runs here (its output not kept), when the first was adopted from a
+    # file a whole run wrote; the likely cause, not shown: that run's bisection had some verdicts answered by
+    # role certificates other tests had adopted, whose bounds can differ at the margin from ones solved here
+    assert adopt_budget(key, budget * 1.01)
+    again = flight_budget(*GAINS, plant=plant, exogenous_fraction=0.05)
+    assert abs(again - budget) <= 2e-4 * budget, (again, budget)
     assert not any(adopt_budget(key, v) for v in ("x", None, -1.0, 0.0, float("nan"), float("inf")))
     path.write_text(json.dumps({"version": "other code", "budgets": {key: budget}}))
     assert adopt_budgets(path) == 0, "a budget found by other certificate code is not read"
