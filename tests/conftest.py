@@ -20,6 +20,7 @@ _seconds: dict[str, float] = defaultdict(float)
 _counts: dict[str, int] = defaultdict(int)
 _spans: dict[str, list[float]] = {}  # group → [first start, last stop] (epoch s)
 _file_seconds: dict[str, float] = defaultdict(float)  # test file under tests/ → its tests' own time
+_cpu_at_start: dict[str, float] = {}  # machine_cpu_s() at the session's start
 
 
 def tier_of(path: Path) -> str:
@@ -49,8 +50,12 @@ def pytest_collection_modifyitems(config, items):
 ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
 #: The tiers that fly in real time. With workers their files run one after another on one worker, while the others
 #: run the computing tiers at nice :data:`COMPUTE_NICE` beside them: a flight's timing is what those tests are about,
-#: and two cores do not fly two at once beside the rest (measured: four workers flying PX4, the browser and two
-#: process files at once, load 26 on 2 cores, 29 failures and 12 errors of 809).
+#: and two cores do not fly two at once beside the rest. Measured at main 7550f7d, quiet machine (one flying lane:
+#: 833 passed in 1453 s): four workers flying PX4, the browser and two process files at once, load 26, 29 failures and
+#: 12 errors of 809 (earlier); three workers, two flying lanes (PX4's, the built-in world's) beside the computing one:
+#: 1136 s, 7 failures (services unanswered for 2 s, a NatNet source silent for 2.4 s; load 12-20); two workers, the
+#: process flights without PX4 or a browser flown first by the computing worker beside the flying lane: 1251 s,
+#: 3 failures (a live bound change later than a period, a NatNet query answered late, PX4's vision timestamps).
 FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
 
@@ -83,11 +88,21 @@ def pytest_runtest_setup(item):
             os.setpriority(os.PRIO_PROCESS, 0, COMPUTE_NICE)
 
 
+def machine_cpu_s() -> dict[str, float]:
+    """The machine's CPU time since boot, every process on it (``/proc/stat``'s cpu line), in core-seconds:
+    ``user`` (nice 0), ``niced``, ``kernel`` (system, interrupts), ``idle`` (with I/O wait), ``stolen``."""
+    ticks = [int(v) / os.sysconf("SC_CLK_TCK") for v in Path("/proc/stat").read_text().split("\n")[0].split()[1:9]]
+    user, niced, system, idle, iowait, irq, softirq, steal = ticks
+    return {"user": user, "niced": niced, "kernel": system + irq + softirq, "idle": idle + iowait, "stolen": steal}
+
+
 def pytest_sessionstart(session):
-    """The flight budgets found before on this machine known to this process, as the trainer and `neso experiment
-    paper` know them (services/certificate_cache.py): each verified before use, one that fails is bisected again."""
+    """The machine's CPU time at the start (read again at the end, :func:`pytest_terminal_summary`); the flight
+    budgets found before on this machine known to this process, as the trainer and `neso experiment paper` know them
+    (services/certificate_cache.py): each verified before use, one that fails is bisected again."""
     from services.certificate_cache import adopt_budgets
 
+    _cpu_at_start.update(machine_cpu_s())
     adopt_budgets()
 
 
@@ -170,3 +185,10 @@ def pytest_terminal_summary(terminalreporter):
     if slowest:
         terminalreporter.write_line("the flying lane's slowest files: " +
                                     ", ".join(f"{f} {s:.0f} s" for s, f in slowest))
+    used = {k: v - _cpu_at_start[k] for k, v in machine_cpu_s().items()}
+    busy, cores = used["user"] + used["niced"] + used["kernel"] + used["stolen"], os.cpu_count()
+    terminalreporter.write_line(
+        f"the machine's CPU over the run (every process on it, the tests' and any other): {busy:.0f} of "
+        f"{busy + used['idle']:.0f} core-seconds busy (nice 0 {used['user']:.0f}, niced {used['niced']:.0f}, kernel "
+        f"{used['kernel']:.0f}, stolen {used['stolen']:.0f}), {used['idle']:.0f} idle: that work spread evenly over "
+        f"{cores} cores would take {busy / cores:.0f} s")
