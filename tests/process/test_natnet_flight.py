@@ -4,6 +4,7 @@ source flown in the same seconds (same seed, same load), and through a rigid bod
 from __future__ import annotations
 
 import glob
+import re
 import time
 
 import numpy as np
@@ -144,8 +145,18 @@ def test_two_vehicles_fly_on_one_simulated_motive(tmp_path):
     assert out.count("simulated Motive: NatNet 4.1") == 1, "one Motive for both"
     seen = [line for line in out.splitlines() if "/source |" in line and "rigid bodies ['a', 'b']" in line]
     assert len(seen) == 2, "each source sees both streamed"
+    without = {}
     for v in ("a", "b"):
         assert len(states[v]) > 400 and {m.source for m in states[v]} == {"mocap"}, (v, len(states[v]))
         done = [line for line in out.splitlines() if f"{v}/source" in line and "done:" in line]
-        assert done and int(done[0].split(" frames without")[0].split(", ")[-1]) <= 5, done
+        assert done, out[-2000:]
+        without[v] = int(done[0].split(" frames without")[0].split(", ")[-1])
         assert not any(m.crashed for m in truth[v]) and abs(truth[v][-1].pos_enu_m[2] - 1.0) < 0.05, v
+    # each source reads its own body from every frame Motive sent it in: a frame comes without a vehicle's body only
+    # when its world had fed no sample near the exposure (Motive's clock is not the worlds'; a world late on a busy
+    # machine), which Motive counts. Before: at most 5 frames without each body, a count of the machine's stalls
+    # (6 and 11 of ~1000 in runs with other work beside: run 17, one core busy; two flights at once)
+    summary = re.search(r"simulated Motive: (\d+) frames sent, (\d+) dropped, (\d+) rigid bodies untracked", out)
+    assert summary, out[-2000:]
+    print(f"frames without each body: {without}; {summary.group(0)}")
+    assert sum(without.values()) <= int(summary.group(3)), (without, summary.group(0))
