@@ -268,11 +268,12 @@ def test_a_server_that_answers_late_is_asked_again():
     with hub(endpoint) as s:
         states: list = []
         sub = s.declare_subscriber(Keys("uav1").topic("state"), lambda sample: states.append(sample))
+        command = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        command.bind(("127.0.0.1", port))  # before the source starts: none of its queries is refused by the kernel
         proc = source(port, endpoint, "uav1")
         try:
             unanswered = 0
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as command:
-                command.bind(("127.0.0.1", port))
+            with command:
                 command.settimeout(30.0)
                 while unanswered < 2:
                     message_id, _ = natnet.split(command.recv(65536))
