@@ -1,11 +1,6 @@
 """The canary through real processes: a deliberately bad network promoted by force in a `neso up` hover
 is rolled back by the estimator itself, the vehicle's worst error (sim truth) stays within what the canary's tripwire
-lets through (2·√2·3 × the hover's RMS error before), and the flight's `.rrd` holds the event.
-
-Flown in lockstep (`--lockstep`): every claim here counts samples (the canary's window, the rollback within 500
-samples, the error over them), none the wall clock, so the flight runs as fast as the processes answer — 14 s
-instead of 26 (tests/README, "Lockstep cuts both") — and a loaded machine cannot turn its stalls into the vehicle's
-error."""
+lets through (2·√2·3 × the hover's RMS error before), and the flight's `.rrd` holds the event."""
 from __future__ import annotations
 
 import glob
@@ -29,8 +24,8 @@ KEYS = Keys("uav1")
 def test_a_bad_network_promoted_by_force_is_rolled_back_by_the_canary(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rec_dir = tmp_path / "recordings"
-    proc = neso("up", "--lockstep", "--scenario", "nominal_landing", "--mission", "hover", "--hub", endpoint,
-                "--no-dashboard", "--no-trainer", "--recordings-dir", str(rec_dir), "--registry", str(tmp_path / "registry"))
+    proc = neso("up", "--scenario", "nominal_landing", "--mission", "hover", "--hub", endpoint, "--no-dashboard",
+                "--no-trainer", "--recordings-dir", str(rec_dir), "--registry", str(tmp_path / "registry"))
     bad = str(tmp_path / "bad.safetensors")
     save_network(bad, velocity_feedback_network(-5.0))  # left alone, this one makes the hover diverge (docs/tdr.md)
     events: list[EventMsg] = []
