@@ -48,16 +48,22 @@ def pytest_collection_modifyitems(config, items):
 
 
 ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
-#: The tiers that fly in real time. With workers their files run one after another on one worker, while the others
-#: run the computing tiers at nice :data:`COMPUTE_NICE` beside them: a flight's timing is what those tests are about,
-#: and two cores do not fly two at once beside the rest. Measured at main 7550f7d, quiet machine (one flying lane:
-#: 833 passed in 1453 s): four workers flying PX4, the browser and two process files at once, load 26, 29 failures and
-#: 12 errors of 809 (earlier); three workers, two flying lanes (PX4's, the built-in world's) beside the computing one:
-#: 1136 s, 7 failures (services unanswered for 2 s, a NatNet source silent for 2.4 s; load 12-20); two workers, the
-#: process flights without PX4 or a browser flown first by the computing worker beside the flying lane: 1251 s,
-#: 3 failures (a live bound change later than a period, a NatNet query answered late, PX4's vision timestamps).
+#: The tiers that fly in real time. With workers their files run in two lanes (:data:`FLIGHT_LANES`), each lane's
+#: files one after another on one worker; a worker whose lane is done runs the computing tiers at nice
+#: :data:`COMPUTE_NICE`. Measured at main 7550f7d, quiet machine (one flying lane then: 833 passed in 1453 s): four
+#: workers flying PX4, the browser and two process files at once, load 26, 29 failures and 12 errors of 809
+#: (earlier); three workers, two flying lanes (PX4's, the built-in world's) beside the computing one: 1136 s,
+#: 7 failures (services unanswered for 2 s, a NatNet source silent for 2.4 s; load 12-20). Two workers, two lanes, the
+#: computing tiers after them (quiet machine, a74214b + lanes): PX4's lane beside the browser's and the process
+#: flights, 897 s, 1 failure (PX4's vision timestamps: with the dashboard's Chromium beside it, PX4's clock, the world's,
+#: fell ~9 % behind the wall clock and its time sync with the gateway never held); PX4's and the browser's lane beside
+#: the process flights: 893 s, 1 failure (the TDR loop's recording, then in real time; now in lockstep).
 FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
+#: The flying lanes: each a group of files flown one after another on one worker; two workers fly both at once and
+#: compute once their lane is done (tests/README.md). The browser's Chromium flies in PX4's lane: beside PX4 it slowed
+#: PX4's clock against the wall clock (above).
+FLIGHT_LANES = {"px4": "px4 and browser flights", "browser": "px4 and browser flights", "process": "process flights"}
 
 
 #: A file of a flying tier whose tests fly nothing in real time (real `neso` subprocesses that compute: offline
@@ -73,16 +79,16 @@ def flies(relative: str) -> bool:
 
 
 def worker_group(nodeid: str) -> str:
-    """The unit of work a test is in: every file that :func:`flies` in one group (they run one after another), else
-    its file (a module's tests share its fixtures, so they never split over workers)."""
+    """The unit of work a test is in: every file that :func:`flies` in its lane (:data:`FLIGHT_LANES`: a lane's files
+    run one after another), else its file (a module's tests share its fixtures, so they never split over workers)."""
     relative = nodeid.split("::")[0].removeprefix("tests/")
-    return "flights" if flies(relative) else relative
+    return FLIGHT_LANES[relative.split("/")[0]] if flies(relative) else relative
 
 
 def pytest_runtest_setup(item):
     """A worker that computes (unit, sim, bus, offline files) yields the CPU to the one that flies: nice 10 from its
-    first such test on (the flying worker takes computing tests only once every flight is done, so no flight ever runs
-    niced)."""
+    first such test on (a worker takes computing tests only once its lane is done, and each lane is one worker's from
+    the start, so no flight ever runs niced)."""
     if os.environ.get("PYTEST_XDIST_WORKER") and not flies(str(Path(item.path).resolve().relative_to(TESTS))):
         if os.getpriority(os.PRIO_PROCESS, 0) < COMPUTE_NICE:
             os.setpriority(os.PRIO_PROCESS, 0, COMPUTE_NICE)
@@ -176,11 +182,11 @@ def pytest_terminal_summary(terminalreporter):
     spans = [_spans[t] for t in TIERS if t in _spans]
     wall = max(s[1] for s in spans) - min(s[0] for s in spans)
     terminalreporter.write_line(f"{'all':<8} {total:8.1f} {wall:7.1f}  {sum(_counts[t] for t in TIERS):4d} tests")
-    lanes = {"flying": 0.0, "computing": 0.0}
+    lanes = dict.fromkeys([*dict.fromkeys(FLIGHT_LANES.values()), "computing"], 0.0)
     for relative, seconds in _file_seconds.items():
-        lanes["flying" if flies(relative) else "computing"] += seconds
-    terminalreporter.write_line(f"lanes: flying {lanes['flying']:.1f} s (its files one after another on one worker: "
-                                f"with workers the run's floor), computing {lanes['computing']:.1f} s")
+        lanes[worker_group(f"tests/{relative}") if flies(relative) else "computing"] += seconds
+    terminalreporter.write_line("lanes (a flying lane's files one after another on one worker): " +
+                                ", ".join(f"{lane} {s:.1f} s" for lane, s in lanes.items()))
     slowest = sorted(((s, f) for f, s in _file_seconds.items() if flies(f)), reverse=True)[:12]
     if slowest:
         terminalreporter.write_line("the flying lane's slowest files: " +

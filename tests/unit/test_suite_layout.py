@@ -6,7 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-from tests.conftest import FLIGHT_TIERS, OFFLINE_MARK, TIERS, worker_group
+from tests.conftest import FLIGHT_LANES, FLIGHT_TIERS, OFFLINE_MARK, TIERS, worker_group
 
 TESTS = Path(__file__).resolve().parents[1]
 
@@ -30,11 +30,11 @@ def test_no_module_imports_a_test_module():
     assert offenders == [], "move what they share to tests/helpers.py"
 
 
-def test_the_flying_tiers_files_fly_on_one_worker_unless_marked_offline():
+def test_the_flying_tiers_files_fly_in_their_lane_unless_marked_offline():
     files = sorted(p.relative_to(TESTS).as_posix() for p in TESTS.rglob("test_*.py"))
     marked = {f for f in files if OFFLINE_MARK.search((TESTS / f).read_text())}
     assert marked and all(f.split("/")[0] in FLIGHT_TIERS for f in marked), "offline means: of a flying tier"
     for f in files:
         group = worker_group(f"tests/{f}::test_x")
         flying = f.split("/")[0] in FLIGHT_TIERS and f not in marked
-        assert group == ("flights" if flying else f), (f, group)
+        assert group == (FLIGHT_LANES[f.split("/")[0]] if flying else f), (f, group)
