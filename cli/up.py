@@ -40,6 +40,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--mission", default=ctl.mission, choices=("idle",) + COMMANDS, help="mission flown from the start")
     p.add_argument("--start", default=src.start, choices=("scenario", "ground"), help="start pose of the vehicle")
     p.add_argument("--lockstep", action="store_true", help="deterministic: the sim waits for each setpoint")
+    p.add_argument("--lockstep-pace", type=float, default=src.lockstep_pace,
+                   help="with --lockstep: at most this multiple of real time (0: as fast as the services answer)")
     p.add_argument("--duration", type=float, default=src.duration_s, help="seconds of flight, then stop (0: until Ctrl-C)")
     p.add_argument("--rate", type=float, default=src.rate_hz, help="control rate Hz (every service of the loop)")
     p.add_argument("--seed", type=int, default=src.seed, help="world seed of the first vehicle (the next: +1, …)")
@@ -125,6 +127,8 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         wait_for = ",".join(["estimator", "controller"] + [s for s in args.wait_for.split(",") if s])
         specific = ["--scenario", args.scenario, "--seed", str(args.seed + index), "--rate", str(args.rate),
                     "--start", args.start, "--duration", str(args.duration), "--wait-for", wait_for]
+        if args.lockstep:
+            specific += ["--lockstep-pace", str(args.lockstep_pace)]
     elif role == "estimator":
         specific = ["--pathway", args.pathway, "--rate", str(args.rate), "--mass-kg", str(args.mass_kg)]
         if args.network is not None:
@@ -315,6 +319,9 @@ def px4_argv(instance: int, vehicle: str, params: str = "") -> tuple[str, ...]:
 
 def run(args) -> int:
     vehicles = args.names or ["uav1"]
+    if args.lockstep_pace < 0 or (args.lockstep_pace and not args.lockstep):
+        print(f"neso up: --lockstep-pace {args.lockstep_pace:g}: a multiple of real time ≥ 0, with --lockstep", flush=True)
+        return 2
     if args.lockstep and args.vehicle in ("mavlink", "px4"):
         print(f"neso up: --vehicle {args.vehicle} runs in real time only (MAVSDK and the MAVLink link keep their own "
               "clock)", flush=True)

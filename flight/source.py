@@ -106,6 +106,8 @@ class SourceConfig:
     wait_for: tuple[str, ...] = option(("estimator", "controller"), cli=comma_list(),
                                        help="services whose liveliness a lockstep run waits for before the first sample")
     lockstep_resend_s: float = 1.0
+    lockstep_pace: float = option(0.0, help="lockstep: at most this multiple of real time (0: as fast as the services "
+                                            "answer; a paced flight leaves the machine's CPU to the rest)")
     mocap: MocapConfig = option(default_factory=MocapConfig, nested=True)
     link: str = option("direct", choices=("direct", "mavlink", "px4"),
                        help="how setpoints reach the simulated vehicle: direct (bus setpoints), mavlink (it presents "

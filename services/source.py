@@ -3,7 +3,8 @@
 paths are in :mod:`services.mocap_source`.
 
 Real time: one sample every period on the wall clock, the newest setpoint acts; lockstep: sample k+1
-once setpoint k has arrived. Command ``scenario`` restarts the world as a new flight.
+once setpoint k has arrived (``lockstep_pace``: and not sooner than period / pace after sample k). Command
+``scenario`` restarts the world as a new flight (lockstep too: its sample 0 waits for its setpoint like any other).
 """
 from __future__ import annotations
 
@@ -32,6 +33,8 @@ def run(args, bus) -> int:
     from runtime.node import Node, run_node
 
     config = config_from_args(args)
+    if config.lockstep_pace < 0:
+        raise SystemExit(f"source: --lockstep-pace {config.lockstep_pace:g}: a multiple of real time ≥ 0")
 
     def node(description: dict[str, str]):
         return Node("source", vehicle=args.vehicle, bus=bus, config=config, params=description_params(description))
@@ -119,8 +122,8 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
         wanted = args.get("name")
         if wanted not in SCENARIOS:
             return False, f"scenario {wanted!r} is not one of {sorted(SCENARIOS)}"
-        if config.lockstep or world is not None:
-            return False, f"a {'lockstep' if config.lockstep else 'PX4'} flight cannot switch scenario (restart it)"
+        if world is not None:
+            return False, "a PX4 flight cannot switch scenario (PX4 would not follow the world's restart; restart it)"
         next_scenario[:] = [wanted]
         return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
 
@@ -129,6 +132,8 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
         _wait_for_services(node, config.wait_for)
     n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
     period = 1.0 / config.rate_hz
+    if config.lockstep:  # a paced lockstep flight steps at most every period / pace of the wall clock
+        period = period / config.lockstep_pace if config.lockstep_pace > 0 else 0.0
     next_tick = time.monotonic()
     while not node.stopping and (n_total is None or core.seq + 1 < n_total):
         with node.lock:
@@ -152,7 +157,7 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
                 if last_state and last_state[0].seq == state.seq - 1:
                     node.event("warning", f"the world's motion capture lost the vehicle at t={truth.t_s:.2f} s: "
                                           "no state until it is back")
-        if not config.lockstep:
+        if period > 0:
             next_tick += period
             delay = next_tick - time.monotonic()
             if delay > 0:
