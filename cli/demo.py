@@ -27,7 +27,10 @@ minute-later stretch of the same turbulence, and the same network's two runs dif
 +24 % (docs/tdr.md, "The live loop"); paired, the difference is the network's. When the candidate is
 not offered, the second run flies the same network again: the pairing's own residual.
 
-With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an
+With ``--lockstep-pace P`` the built-in world flies in lockstep, at most P× real time: every sample is answered (so
+deadlines are not measured: the report's misses are 0 by construction, and the PX4 loop, in real time, is where they
+are), the restarts and the paired starts are the same in the world's time, and the loop takes a fraction of the
+wall clock. With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an
 operator does, and since PX4 would not follow a restarted world the two lemniscates are not paired (one world flies
 on; the report says so).
 
@@ -56,6 +59,10 @@ from neso.trajectories import Lemniscate
 RAMP_S = Lemniscate().ramp_s  # the cycles start after it
 SCENARIO = "lemniscate_near_ground"
 PAIRED_START_T_S = 3.0  # world clock (s) at which each paired lemniscate is commanded
+# world clock (s) from which the command is sent: in real time 2 s ahead, so that its latency up to 2 s of the wall
+# clock cannot move the start; in lockstep from 0.2 s (a state at 0.2 s means the controller began this world's
+# flight: it answered every sample before), 2.8 s of the world ahead, 0.56 s of the wall clock at 5× real time
+COMMAND_FROM_T_S = {"real time": PAIRED_START_T_S - 2.0, "lockstep": 0.2}
 FORCE_STEP_LIMIT_N = ControlConfig().force_step_limit_n  # the controller's, at neso up's default 50 Hz
 
 
@@ -76,6 +83,9 @@ def add_parser(subparsers) -> None:
                    help="builtin: the world's own inner loop, the two lemniscates paired (the world restarts with "
                         "its seed); px4: real PX4 SITL flies the world (`neso up --vehicle px4`), taken off as an "
                         "operator does; its world cannot restart under PX4, so the lemniscates are not paired")
+    t.add_argument("--lockstep-pace", type=float, default=0.0,
+                   help="the built-in world in lockstep, at most this multiple of real time (0: real time); every "
+                        "sample answered, so no deadline is measured")
 
 
 @dataclass
@@ -115,6 +125,7 @@ class TdrReport:
     canary: str = ""  # the canary's last word after the second run
     lemniscate_start_t_s: list = field(default_factory=list)  # world clock at each run's first lemniscate sample
     world: str = "builtin"  # or "px4": PX4 SITL in the loop, the lemniscates not paired
+    lockstep_pace: float = 0.0  # > 0: the built-in world flew in lockstep at most this multiple of real time
     gains: dict = field(default_factory=dict)  # the z gains flown: kp (1/s²), kd (1/s), omega_o (rad/s)
     rmse_pdeso_cm: float = float("nan")  # PD+ESO at the same gains, the lemniscate's cycles (paired in builtin)
     pdeso_samples: int = 0
@@ -134,6 +145,8 @@ class TdrReport:
             f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm " if self.offered
             else f"z RMSE, the lemniscate again (base network: {self.network_id} not offered): {self.rmse_after_cm:.2f} cm "
             f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
+            f"lockstep at most {self.lockstep_pace:g}× real time: every sample answered, no deadline measured "
+            f"({self.states} states)" if self.lockstep_pace > 0 else
             f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.states_without_setpoint} without "
             f"any setpoint, the rest flown on the controller's local ESO; {self.missed_near_swap} within 0.5 s of the "
             f"swap, swap sample answered: {self.swap_answered}; by phase {self.missed_by_phase})",
@@ -321,12 +334,13 @@ def tuned_pdeso_text(t: dict) -> str:
 
 def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
                  fly_after: bool = True, dashboard_port: int | None = None, seed: int = 1,
-                 force_offer: bool = False, world: str = "builtin") -> TdrReport:
+                 force_offer: bool = False, world: str = "builtin", lockstep_pace: float = 0.0) -> TdrReport:
     """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
     ``fly_after`` False: stop once the new network flies (the bench: stage times only; no PD+ESO run).
     ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard).
     ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse;
-    ``world`` px4: PX4 SITL flies the world (it takes off first; the lemniscates are not paired)."""
+    ``world`` px4: PX4 SITL flies the world (it takes off first; the lemniscates are not paired).
+    ``lockstep_pace`` > 0: the built-in world in lockstep at most that multiple of real time (0: real time)."""
     from runtime.bus import BusConfig, open_session
     from runtime.launcher import interrupt
 
@@ -338,6 +352,10 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     argv = [sys.executable, "-m", "cli.main", "up", "--scenario", "lemniscate_near_ground", "--mission", "hover",
             "--hub", hub, "--recordings-dir", rec_dir, "--registry", registry, "--seed", str(seed)]
     argv += ["--no-dashboard"] if dashboard_port is None else ["--dashboard-port", str(dashboard_port)]
+    if lockstep_pace > 0:
+        if world != "builtin":
+            raise ValueError("only the built-in world flies in lockstep (PX4 keeps wall-clock timeouts)")
+        argv += ["--lockstep", "--lockstep-pace", str(lockstep_pace)]
     if world == "px4":
         from cli.paper_px4 import free_px4_instance
 
@@ -349,6 +367,7 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
     try:
         loop = _Loop.watch(session, log, registry, world)
         loop.report.gains = z.to_dict()
+        loop.report.lockstep_pace = lockstep_pace
         try:
             if on_up is not None:
                 on_up(up)
@@ -376,6 +395,11 @@ class _Loop:
     registry: str
     world: str = "builtin"
     report: TdrReport = field(default_factory=TdrReport)
+
+    @property
+    def clock(self) -> str:
+        """How the world's clock runs: "lockstep" or "real time"."""
+        return "lockstep" if self.report.lockstep_pace > 0 else "real time"
 
     @classmethod
     def watch(cls, session, log, registry: str, world: str = "builtin") -> "_Loop":
@@ -426,7 +450,7 @@ class _Loop:
                                                                    else "in the world flying on (not paired)"))
             since = self.new_world()
             self.cmd("recorder", "start")
-            second_run = fly_lemniscate(self.probe, self.cmd, since)
+            second_run = fly_lemniscate(self.probe, self.cmd, since, self.clock)
             report.lemniscate_start_t_s.append(second_run.start_t_s)
             report.canary = self.probe.get("network")[-1].canary.get("last", "")
             analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report,
@@ -442,7 +466,7 @@ class _Loop:
         if not reply.ok:
             raise RuntimeError(f"the estimator refused the eso pathway: {reply.error}")
         self.log("flying the lemniscate with PD+ESO at the same gains")
-        run = fly_lemniscate(self.probe, self.cmd, self.new_world())
+        run = fly_lemniscate(self.probe, self.cmd, self.new_world(), self.clock)
         self.report.lemniscate_start_t_s.append(run.start_t_s)
         self.report.rmse_pdeso_cm, self.report.pdeso_samples = z_rmse_cm(self.probe.get("reference"),
                                                                           self.probe.get("truth"), run)
@@ -477,7 +501,7 @@ class _Loop:
         """The base network flies the lemniscate, recorded; the recording is stopped (and its path kept)."""
         probe, cmd = self.probe, self.cmd
         self.log("flying the lemniscate under Neural-ESO with the base network, recording")
-        first_run = fly_lemniscate(probe, cmd, self.new_world())
+        first_run = fly_lemniscate(probe, cmd, self.new_world(), self.clock)
         self.report.lemniscate_start_t_s.append(first_run.start_t_s)
         path = probe.wait_for("recording", lambda m: m.recording and m.path and m.stamp_s > first_run.since_s, 5.0).path
         t_stop = time.monotonic()
@@ -503,7 +527,7 @@ class _Loop:
     def fly_base_again(self, first_run: Run) -> None:
         """Nothing was offered: the same network flies the same world again (the pairing's own noise)."""
         report, probe = self.report, self.probe
-        second_run = fly_lemniscate(probe, self.cmd, self.new_world())
+        second_run = fly_lemniscate(probe, self.cmd, self.new_world(), self.clock)
         first_run = replace(first_run, until_s=second_run.since_s)
         report.lemniscate_start_t_s.append(second_run.start_t_s)
         refs, truths = probe.get("reference"), probe.get("truth")
@@ -553,13 +577,14 @@ def restart_world(probe, cmd) -> float:
     return min(m.stamp_s for m in probe.get("state") if m.stamp_s > t_cmd and m.seq <= first.seq)
 
 
-def fly_lemniscate(probe, cmd, since_s: float) -> Run:
+def fly_lemniscate(probe, cmd, since_s: float, clock: str = "real time") -> Run:
     """In the world that began at ``since_s``: the lemniscate, started by the controller at the world's
     ``PAIRED_START_T_S`` (sent with the command, so its latency does not move the start: under load a command sent
-    when the clock got there began 11 samples late), and wait until it is over."""
-    # sent 2 s ahead: the controller has begun this world's flight (a new world restarts its mission) and the
-    # command's latency, up to those 2 s, no longer decides when the lemniscate begins
-    probe.wait_for("state", lambda m: m.stamp_s >= since_s and m.t_s >= PAIRED_START_T_S - 2.0, 30.0)
+    when the clock got there began 11 samples late), and wait until it is over. ``clock``: "real time" or
+    "lockstep" (when the command is sent: :data:`COMMAND_FROM_T_S`)."""
+    # sent ahead: the controller has begun this world's flight (a new world restarts its mission) and the command's
+    # latency, up to the time left, no longer decides when the lemniscate begins
+    probe.wait_for("state", lambda m: m.stamp_s >= since_s and m.t_s >= COMMAND_FROM_T_S[clock], 30.0)
     reply = cmd("controller", "lemniscate", at_t_s=PAIRED_START_T_S)
     assert reply.ok, reply.message
     ours = lambda m: m.stamp_s >= since_s  # noqa: E731
@@ -589,6 +614,10 @@ def free_loopback_port() -> int:
 
 
 def run(args) -> int:
+    if args.lockstep_pace < 0 or (args.lockstep_pace and args.world != "builtin"):
+        print(f"neso demo tdr: --lockstep-pace {args.lockstep_pace:g}: a multiple of real time ≥ 0, with the built-in "
+              "world only (PX4 keeps wall-clock timeouts)", flush=True)
+        return 2
     if args.world == "px4":
         from sim.px4_sitl import missing_px4
 
@@ -599,7 +628,8 @@ def run(args) -> int:
     workdir = args.workdir or tempfile.mkdtemp(prefix="neso-tdr-")
     os.makedirs(workdir, exist_ok=True)
     report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs, dashboard_port=args.dashboard_port or None,
-                          seed=args.seed, force_offer=args.force_offer, world=args.world)
+                          seed=args.seed, force_offer=args.force_offer, world=args.world,
+                          lockstep_pace=args.lockstep_pace)
     print("\n".join(report.lines()))
     print(f"recordings, registry and the neso up log are in {workdir}")
     if args.json:

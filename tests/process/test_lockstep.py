@@ -8,9 +8,12 @@ samples "missing" in a full run; 268 of 550 with its interpreter kept busy, ``NE
 tests.load``), though the system had published every one."""
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 
 import numpy as np
+import pytest
 
 from neso.eso import EsoConfig
 from neso.estimator import NeuralEsoConfig
@@ -22,6 +25,8 @@ from runtime.probe import Probe
 from sim.runner import fly
 from sim.scenarios import make_scenario
 from tests.busutil import REPO, free_port, neso, peer, session, stop
+
+pytestmark = pytest.mark.offline  # lockstep: nothing here flies in real time (tests/conftest.py)
 
 NETWORK = f"{REPO}/networks/base.safetensors"
 STALL_S = 30.0
@@ -72,3 +77,40 @@ def test_lockstep_processes_reproduce_the_in_process_runner():
     assert err <= 1e-9, f"trajectory differs by {err} m"
     assert np.max(np.abs(thrust - log.thrust_n)) <= 1e-9
     assert abs(pos[-1, 2] - 0.1) < 0.03, "the landing test really descended to 0.1 m"
+
+
+def test_a_paced_lockstep_flight_is_no_faster_than_its_pace_and_loses_nothing():
+    """``--lockstep-pace 4``: at most 4× real time (the states' wall-clock stamps at least a quarter period apart on
+    average, a lower bound a loaded machine can only lengthen), every sample once and in order. Without
+    ``--lockstep`` the pace is refused in one line."""
+    pace, rate_hz, duration_s = 4.0, 50.0, 4.0
+    refused = subprocess.run([sys.executable, "-m", "cli.main", "up", "--lockstep-pace", "4", "--no-dashboard"],
+                             cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and refused.stdout.strip() == \
+        "neso up: --lockstep-pace 4: a multiple of real time ≥ 0, with --lockstep", refused.stdout + refused.stderr
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with session(peer(endpoint)) as s:
+        probe = Probe(s)
+        token = s.liveliness().declare_token(probe.keys.alive("probe"))
+        proc = neso("up", "--lockstep", "--lockstep-pace", str(pace), "--duration", str(duration_s), "--rate",
+                    str(rate_hz), "--hub", endpoint, "--wait-for", "probe", "--no-dashboard", "--no-record",
+                    "--no-trainer")
+        try:
+            n = int(duration_s * rate_hz)
+            progress_s, count = time.monotonic(), 0
+            while count < n:  # the flight ends by itself after its duration; the tail may still be on its way
+                if len(probe.get("truth")) > count:
+                    count, progress_s = len(probe.get("truth")), time.monotonic()
+                assert time.monotonic() - progress_s < STALL_S, f"no sample for {STALL_S:.0f} s after {count} of {n}"
+                time.sleep(0.05)
+        finally:
+            out = stop(proc, timeout_s=20.0)
+        token.undeclare()
+        truth = probe.get("truth")
+    assert "Traceback" not in out, out[-3000:]
+    assert [m.seq for m in truth] == list(range(n)), "every sample once, in order"
+    wall_s, world_s = truth[-1].stamp_s - truth[0].stamp_s, truth[-1].t_s - truth[0].t_s
+    assert world_s == pytest.approx((n - 1) / rate_hz)
+    assert wall_s >= world_s / pace * (1 - 1e-3), (wall_s, world_s)
+    print(f"\n{n} samples: {world_s:.2f} s of the world in {wall_s:.2f} s of the wall clock ({world_s / wall_s:.2f}× "
+          f"real time, at most {pace:g}×)")

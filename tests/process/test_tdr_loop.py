@@ -1,4 +1,5 @@
-"""The whole TDR loop in simulation through `neso up` (real processes, real Zenoh, real `.rrd` files, real time).
+"""The whole TDR loop in simulation through `neso up` (real processes, real Zenoh, real `.rrd` files), in lockstep at
+most 5× real time (`neso demo tdr --lockstep-pace 5`).
 
 Fly the near-ground lemniscate under Neural-ESO with the base network while the recorder writes the
 flight; stop the recording; the trainer service trains a TDR network from the `.rrd` starting from
@@ -7,7 +8,9 @@ candidate's slopes as gain (the prediction), stores it and offers it (forced: in
 is nothing state-dependent left to learn, so a candidate is often predicted no better and withheld — the trainer's
 unit tests show that gate); the estimator's gate puts it in shadow; it is promoted in flight; the lemniscate is
 flown again while the canary watches, and once more with PD+ESO at the same gains (PD+ESO at the tuned gains
-in-process beside it). ~150 s on two cores.
+in-process beside it). ~135 s in real time; in lockstep every sample is answered, so its deadlines are the PX4
+loop's claims (`tests/px4/test_px4_tdr.py`, real time: the swap sample answered, at most 3 misses within 0.5 s of it,
+at most 1 % in all), and it runs beside the flights, not among them (``offline``: nothing here flies in real time).
 """
 from __future__ import annotations
 
@@ -20,14 +23,16 @@ from cli.demo import FORCE_STEP_LIMIT_N, fly_tdr_loop
 from flight.hotswap import CanaryConfig
 from tests.busutil import free_port
 
-pytestmark = pytest.mark.slow  # ~150 s: the whole loop in real time
+pytestmark = [pytest.mark.slow, pytest.mark.offline]  # the whole loop, in lockstep
+
+LOCKSTEP_PACE = 5.0  # at most 5× real time: the hover while the trainer trains leaves it most of the CPU
 
 
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("tdr")
     report = fly_tdr_loop(hub=f"tcp/127.0.0.1:{free_port()}", workdir=str(workdir), log=lambda *_: None,
-                          force_offer=True)
+                          force_offer=True, lockstep_pace=LOCKSTEP_PACE)
     print("\n".join(report.lines()))
     return report, workdir
 
@@ -52,11 +57,13 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     # ordinary step that exceeds it in ~1 % of flights by chance alone (CI: 0.321 against 0.297)
     assert report.f_hat_step_at_swap_mps2 <= report.f_hat_step_max_mps2, report.lines()
     assert report.force_step_at_swap_n <= FORCE_STEP_LIMIT_N + 1e-9
-    # deadlines: the swap sample is answered on time; around it and elsewhere at most what the shared
-    # machine's load causes (measured 2-3 % of samples over the whole flight at load average ~9 on 2 cores)
-    assert report.swap_answered
-    assert report.missed_near_swap <= 3, report.missed_by_phase
-    assert report.missed_setpoints <= 0.06 * report.states, report.missed_by_phase
+    # lockstep: every state of every phase answered with a setpoint, the swap sample and the 25 around it with the
+    # estimator's f̂. Elsewhere the controller may fly its local ESO where the estimator was silent for its 2 s of the
+    # wall clock (measured: 2 samples while the estimator took the trainer's offer, 2.7 s; in real time that stall is
+    # deadline misses). Deadlines in real time are the PX4 loop's claims (tests/px4/test_px4_tdr.py).
+    assert report.lockstep_pace == LOCKSTEP_PACE and report.states > 3000
+    assert report.states_without_setpoint == 0, report.missed_by_phase
+    assert report.swap_answered and report.missed_near_swap == 0, report.missed_by_phase
 
 
 def test_a_promoted_network_never_flies_worse_than_the_canary_tolerates(loop):
