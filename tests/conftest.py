@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import os
 import re
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -37,6 +38,26 @@ def pytest_configure(config):
     if getattr(config.option, "numprocesses", None):
         for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
             os.environ.setdefault(name, "1")
+        if not os.environ.get("PYTEST_XDIST_WORKER"):  # the controller, which schedules
+            _lanes.update(flight_lanes())
+
+
+def flight_lanes() -> dict[str, object]:
+    """How many flying lanes this run has (:data:`FLIGHT_LANES`): two when the machine's cores are free, one when
+    other work keeps more than :data:`BUSY_CORES_FOR_ONE_LANE` of them busy over a second before the run (two lanes
+    beside one busy core failed: tests/README.md); ``NESO_TEST_LANES=1|2`` says it instead. Returns ``lanes`` and
+    why."""
+    forced = os.environ.get("NESO_TEST_LANES", "")
+    if forced:
+        if forced not in ("1", "2"):
+            raise pytest.UsageError(f"NESO_TEST_LANES={forced}: 1 or 2")
+        return {"lanes": int(forced), "why": f"NESO_TEST_LANES={forced}"}
+    before = machine_cpu_s()
+    time.sleep(1.0)
+    used = {k: v - before[k] for k, v in machine_cpu_s().items()}
+    busy = (sum(used.values()) - used["idle"]) / max(sum(used.values()), 1e-9) * (os.cpu_count() or 1)
+    lanes = 2 if busy <= BUSY_CORES_FOR_ONE_LANE and (os.cpu_count() or 1) >= 2 else 1
+    return {"lanes": lanes, "why": f"{busy:.2f} cores busy over 1 s before the run, on {os.cpu_count()}"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
@@ -61,9 +82,11 @@ ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
 FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
 #: The flying lanes: each a group of files flown one after another on one worker; two workers fly both at once and
-#: compute once their lane is done (tests/README.md). The browser's Chromium flies in PX4's lane: beside PX4 it slowed
-#: PX4's clock against the wall clock (above).
+#: compute once their lane is done (tests/README.md). The browser's flights are in PX4's lane, as measured last.
 FLIGHT_LANES = {"px4": "px4 and browser flights", "browser": "px4 and browser flights", "process": "process flights"}
+ONE_LANE = "flights"  # every flight in one lane: on a machine whose cores are not free (flight_lanes)
+BUSY_CORES_FOR_ONE_LANE = 0.5
+_lanes: dict[str, object] = {}  # the controller's: flight_lanes() of this run
 
 
 #: A file of a flying tier whose tests fly nothing in real time (real `neso` subprocesses that compute: offline
@@ -78,11 +101,14 @@ def flies(relative: str) -> bool:
     return relative.split("/")[0] in FLIGHT_TIERS and not OFFLINE_MARK.search((TESTS / relative).read_text())
 
 
-def worker_group(nodeid: str) -> str:
-    """The unit of work a test is in: every file that :func:`flies` in its lane (:data:`FLIGHT_LANES`: a lane's files
-    run one after another), else its file (a module's tests share its fixtures, so they never split over workers)."""
+def worker_group(nodeid: str, lanes: int | None = None) -> str:
+    """The unit of work a test is in: every file that :func:`flies` in its lane (``lanes`` 2: :data:`FLIGHT_LANES`,
+    1: :data:`ONE_LANE`; None: this run's; a lane's files run one after another), else its file (a module's tests
+    share its fixtures, so they never split over workers)."""
     relative = nodeid.split("::")[0].removeprefix("tests/")
-    return FLIGHT_LANES[relative.split("/")[0]] if flies(relative) else relative
+    if not flies(relative):
+        return relative
+    return FLIGHT_LANES[relative.split("/")[0]] if (lanes or _lanes.get("lanes", 2)) == 2 else ONE_LANE
 
 
 def pytest_runtest_setup(item):
@@ -182,10 +208,12 @@ def pytest_terminal_summary(terminalreporter):
     spans = [_spans[t] for t in TIERS if t in _spans]
     wall = max(s[1] for s in spans) - min(s[0] for s in spans)
     terminalreporter.write_line(f"{'all':<8} {total:8.1f} {wall:7.1f}  {sum(_counts[t] for t in TIERS):4d} tests")
-    lanes = dict.fromkeys([*dict.fromkeys(FLIGHT_LANES.values()), "computing"], 0.0)
-    for relative, seconds in _file_seconds.items():
-        lanes[worker_group(f"tests/{relative}") if flies(relative) else "computing"] += seconds
-    terminalreporter.write_line("lanes (a flying lane's files one after another on one worker): " +
+    lanes: dict[str, float] = {}
+    for relative, seconds in sorted(_file_seconds.items(), key=lambda kv: not flies(kv[0])):
+        lane = worker_group(f"tests/{relative}") if flies(relative) else "computing"
+        lanes[lane] = lanes.get(lane, 0.0) + seconds
+    chosen = f"{_lanes['lanes']} flying lane(s): {_lanes['why']}; " if _lanes else ""
+    terminalreporter.write_line(f"lanes ({chosen}a flying lane's files one after another on one worker): " +
                                 ", ".join(f"{lane} {s:.1f} s" for lane, s in lanes.items()))
     slowest = sorted(((s, f) for f, s in _file_seconds.items() if flies(f)), reverse=True)[:12]
     if slowest:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-from tests.conftest import FLIGHT_LANES, FLIGHT_TIERS, OFFLINE_MARK, TIERS, worker_group
+from tests.conftest import FLIGHT_LANES, FLIGHT_TIERS, OFFLINE_MARK, ONE_LANE, TIERS, worker_group
 
 TESTS = Path(__file__).resolve().parents[1]
 
@@ -38,3 +38,4 @@ def test_the_flying_tiers_files_fly_in_their_lane_unless_marked_offline():
         group = worker_group(f"tests/{f}::test_x")
         flying = f.split("/")[0] in FLIGHT_TIERS and f not in marked
         assert group == (FLIGHT_LANES[f.split("/")[0]] if flying else f), (f, group)
+        assert worker_group(f"tests/{f}::test_x", lanes=1) == (ONE_LANE if flying else f), f
