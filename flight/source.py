@@ -114,12 +114,6 @@ class SourceConfig:
                             "itself as a PX4 on --mavlink-out; the px4_gateway flies it, sim/mavlink_vehicle.py) or px4 "
                             "(it is real PX4 SITL's simulator on TCP --px4-port; PX4 flies it, sim/px4_hil.py)")
     px4_port: int = option(4560, help="--link px4: the TCP port PX4 SITL connects to (4560 + its instance)")
-    # How far behind the wall clock the real-time world may fall before it gives the time up (re-anchors) rather
-    # than catching up with periods back to back: one period, except with PX4, whose clock is the world's. PX4 keeps
-    # its time sync with the gateway (the ODOMETRY capture stamps) only while its clock keeps the wall's pace: it
-    # resets the sync on a 100 ms deviation (PX4 v1.16 src/lib/timesync). Re-anchored at every stall of a loaded
-    # machine, PX4's clock fell ~9 % behind and PX4 dated external vision on arrival (tests/README.md).
-    px4_catch_up_s: float = option(0.5, unit="s", help="--link px4: how far behind the wall clock the world catches up")
     mavlink_out: str = option("udpout:127.0.0.1:14540",
                               help="where the simulated PX4 sends its MAVLink (the gateway's udpin address)")
     mavlink_log: str = option("", help="JSON-lines log of every MAVLink command/setpoint received")
