@@ -45,10 +45,10 @@ demo: setup
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
-# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) workers: two lanes of real-time
-# flights (PX4's and the browser's; the process flights), each flown one file after another by one worker, which then
-# computes (unit, sim, bus, lockstep and offline files) at nice 10 (tests/conftest.py); the time per tier and the
-# slowest tests at the end.
+# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) workers: one flies the real-time
+# tiers one file after another, the other computes (unit, sim, bus, lockstep and offline files) at nice 10 beside it
+# (NESO_TEST_LANES=2: two flying lanes, not yet green; tests/conftest.py); the time per tier and the slowest tests at
+# the end.
 WORKERS ?= 2
 test: setup
 	$(PY) -m pytest -n $(WORKERS) --durations=20

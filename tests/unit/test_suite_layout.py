@@ -35,7 +35,7 @@ def test_the_flying_tiers_files_fly_in_their_lane_unless_marked_offline():
     marked = {f for f in files if OFFLINE_MARK.search((TESTS / f).read_text())}
     assert marked and all(f.split("/")[0] in FLIGHT_TIERS for f in marked), "offline means: of a flying tier"
     for f in files:
-        group = worker_group(f"tests/{f}::test_x")
+        group = worker_group(f"tests/{f}::test_x", lanes=2)
         flying = f.split("/")[0] in FLIGHT_TIERS and f not in marked
         assert group == (FLIGHT_LANES[f.split("/")[0]] if flying else f), (f, group)
         assert worker_group(f"tests/{f}::test_x", lanes=1) == (ONE_LANE if flying else f), f
