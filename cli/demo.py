@@ -27,10 +27,10 @@ minute-later stretch of the same turbulence, and the same network's two runs dif
 +24 % (docs/tdr.md, "The live loop"); paired, the difference is the network's. When the candidate is
 not offered, the second run flies the same network again: the pairing's own residual.
 
-With ``--lockstep-pace P`` the built-in world flies in lockstep, at most P× real time: every sample is answered (so
-deadlines are not measured: the report's misses are 0 by construction, and the PX4 loop, in real time, is where they
-are), the restarts and the paired starts are the same in the world's time, and the loop takes a fraction of the
-wall clock. With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an
+With ``--lockstep-pace P`` the built-in world flies in lockstep, at most P× real time: every state is answered with a
+setpoint, so deadlines are not measured (a miss there is the controller's local ESO flying a sample the estimator
+left unanswered for 2 s of the wall clock; the PX4 loop, in real time, is where deadlines are), the restarts and the
+paired starts are the same in the world's time, and the loop takes a fraction of the wall clock. With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an
 operator does, and since PX4 would not follow a restarted world the two lemniscates are not paired (one world flies
 on; the report says so).
 
@@ -145,8 +145,10 @@ class TdrReport:
             f"z RMSE, lemniscate cycles after the swap ({self.network_id}): {self.rmse_after_cm:.2f} cm " if self.offered
             else f"z RMSE, the lemniscate again (base network: {self.network_id} not offered): {self.rmse_after_cm:.2f} cm "
             f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
-            f"lockstep at most {self.lockstep_pace:g}× real time: every sample answered, no deadline measured "
-            f"({self.states} states)" if self.lockstep_pace > 0 else
+            f"lockstep at most {self.lockstep_pace:g}× real time, no deadline measured: {self.states} states, "
+            f"{self.states_without_setpoint} without a setpoint, {self.missed_setpoints} flown on the controller's "
+            f"local ESO (the estimator silent for 2 s of the wall clock; by phase {self.missed_by_phase})"
+            if self.lockstep_pace > 0 else
             f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.states_without_setpoint} without "
             f"any setpoint, the rest flown on the controller's local ESO; {self.missed_near_swap} within 0.5 s of the "
             f"swap, swap sample answered: {self.swap_answered}; by phase {self.missed_by_phase})",
