@@ -17,8 +17,10 @@ def test_cpu_window_tells_a_busy_process_from_an_idle_one():
     finally:
         busy.kill(), idle.kill()
         busy.wait(), idle.wait()
-    assert per_sample["busy"] > 0.2e6  # a spinning process: most of a core, even beside a CPU hog
+    # a spinning process: whatever share the scheduler gives it (in `make test` it inherits the computing worker's
+    # nice 10: 0.14 core measured beside a busy core and a flight), against next to nothing for a sleeping one
     assert per_sample["idle"] < 0.05e6
+    assert per_sample["busy"] > 20 * max(per_sample["idle"], 1e3), per_sample
 
 
 def test_a_window_that_never_starts_reports_nothing_and_a_gone_process_counts_zero():
