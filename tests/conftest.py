@@ -59,7 +59,10 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: ORDER.index(tier_of(item.path)))
 
 
-ORDER = ("px4", "browser", "process", "sim", "bus", "unit")
+#: The flying lane's order: PX4's flights first (the longest), the browser's last, when the computing tiers are done:
+#: Chromium runs at nice 19 (tests/browser/chromium.py), so beside the computing worker (nice 10) and a busy core it
+#: got almost nothing and the dashboard's file took 251 s instead of 115 s (loaded run at 43a2213, browser after PX4)
+ORDER = ("px4", "process", "browser", "sim", "bus", "unit")
 #: The tiers that fly in real time. With workers their files run in one lane (or two: :func:`flight_lanes`), a lane's
 #: files one after another on one worker; a worker whose lane is done runs the computing tiers at nice
 #: :data:`COMPUTE_NICE`. Measured at main 7550f7d, quiet machine (one flying lane then: 833 passed in 1453 s): four
