@@ -53,6 +53,8 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from flight.controller import MAX_LEMNISCATE_CYCLES
+from flight.mission import MissionConfig
 from neso.control import ControlConfig
 from neso.trajectories import Lemniscate
 
@@ -86,6 +88,8 @@ def add_parser(subparsers) -> None:
     t.add_argument("--lockstep-pace", type=float, default=0.0,
                    help="the built-in world in lockstep, at most this multiple of real time (0: real time); every "
                         "sample answered, so no deadline is measured")
+    t.add_argument("--lemniscate-cycles", type=int, default=None,
+                   help="6 s cycles per lemniscate (default: the mission's, 5); fewer make a shorter demo")
 
 
 @dataclass
@@ -126,6 +130,7 @@ class TdrReport:
     lemniscate_start_t_s: list = field(default_factory=list)  # world clock at each run's first lemniscate sample
     world: str = "builtin"  # or "px4": PX4 SITL in the loop, the lemniscates not paired
     lockstep_pace: float = 0.0  # > 0: the built-in world flew in lockstep at most this multiple of real time
+    lemniscate_cycles: int = 0  # the 6 s cycles each lemniscate flew
     gains: dict = field(default_factory=dict)  # the z gains flown: kp (1/s²), kd (1/s), omega_o (rad/s)
     rmse_pdeso_cm: float = float("nan")  # PD+ESO at the same gains, the lemniscate's cycles (paired in builtin)
     pdeso_samples: int = 0
@@ -336,13 +341,15 @@ def tuned_pdeso_text(t: dict) -> str:
 
 def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=None,
                  fly_after: bool = True, dashboard_port: int | None = None, seed: int = 1,
-                 force_offer: bool = False, world: str = "builtin", lockstep_pace: float = 0.0) -> TdrReport:
+                 force_offer: bool = False, world: str = "builtin", lockstep_pace: float = 0.0,
+                 lemniscate_cycles: int | None = None) -> TdrReport:
     """Run the loop of the module docstring against a ``neso up`` it starts (and stops) on ``hub``.
     ``fly_after`` False: stop once the new network flies (the bench: stage times only; no PD+ESO run).
     ``dashboard_port``: serve the dashboard there to watch the loop (None: no dashboard).
     ``seed``: the world's; ``force_offer``: offer (and promote) even a candidate predicted worse;
     ``world`` px4: PX4 SITL flies the world (it takes off first; the lemniscates are not paired).
-    ``lockstep_pace`` > 0: the built-in world in lockstep at most that multiple of real time (0: real time)."""
+    ``lockstep_pace`` > 0: the built-in world in lockstep at most that multiple of real time (0: real time).
+    ``lemniscate_cycles``: each lemniscate's (None: the mission's)."""
     from runtime.bus import BusConfig, open_session
     from runtime.launcher import interrupt
 
@@ -370,6 +377,8 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
         loop = _Loop.watch(session, log, registry, world)
         loop.report.gains = z.to_dict()
         loop.report.lockstep_pace = lockstep_pace
+        loop.cycles = lemniscate_cycles
+        loop.report.lemniscate_cycles = lemniscate_cycles or MissionConfig().lemniscate_cycles
         try:
             if on_up is not None:
                 on_up(up)
@@ -396,6 +405,7 @@ class _Loop:
     log: object
     registry: str
     world: str = "builtin"
+    cycles: int | None = None  # each lemniscate's (None: the mission's)
     report: TdrReport = field(default_factory=TdrReport)
 
     @property
@@ -452,7 +462,7 @@ class _Loop:
                                                                    else "in the world flying on (not paired)"))
             since = self.new_world()
             self.cmd("recorder", "start")
-            second_run = fly_lemniscate(self.probe, self.cmd, since, self.clock)
+            second_run = fly_lemniscate(self.probe, self.cmd, since, self.clock, self.cycles)
             report.lemniscate_start_t_s.append(second_run.start_t_s)
             report.canary = self.probe.get("network")[-1].canary.get("last", "")
             analyse(self.probe, replace(first_run, until_s=second_run.since_s), second_run, swap_seq, report,
@@ -468,7 +478,7 @@ class _Loop:
         if not reply.ok:
             raise RuntimeError(f"the estimator refused the eso pathway: {reply.error}")
         self.log("flying the lemniscate with PD+ESO at the same gains")
-        run = fly_lemniscate(self.probe, self.cmd, self.new_world(), self.clock)
+        run = fly_lemniscate(self.probe, self.cmd, self.new_world(), self.clock, self.cycles)
         self.report.lemniscate_start_t_s.append(run.start_t_s)
         self.report.rmse_pdeso_cm, self.report.pdeso_samples = z_rmse_cm(self.probe.get("reference"),
                                                                           self.probe.get("truth"), run)
@@ -503,7 +513,7 @@ class _Loop:
         """The base network flies the lemniscate, recorded; the recording is stopped (and its path kept)."""
         probe, cmd = self.probe, self.cmd
         self.log("flying the lemniscate under Neural-ESO with the base network, recording")
-        first_run = fly_lemniscate(probe, cmd, self.new_world(), self.clock)
+        first_run = fly_lemniscate(probe, cmd, self.new_world(), self.clock, self.cycles)
         self.report.lemniscate_start_t_s.append(first_run.start_t_s)
         path = probe.wait_for("recording", lambda m: m.recording and m.path and m.stamp_s > first_run.since_s, 5.0).path
         t_stop = time.monotonic()
@@ -529,7 +539,7 @@ class _Loop:
     def fly_base_again(self, first_run: Run) -> None:
         """Nothing was offered: the same network flies the same world again (the pairing's own noise)."""
         report, probe = self.report, self.probe
-        second_run = fly_lemniscate(probe, self.cmd, self.new_world(), self.clock)
+        second_run = fly_lemniscate(probe, self.cmd, self.new_world(), self.clock, self.cycles)
         first_run = replace(first_run, until_s=second_run.since_s)
         report.lemniscate_start_t_s.append(second_run.start_t_s)
         refs, truths = probe.get("reference"), probe.get("truth")
@@ -579,15 +589,15 @@ def restart_world(probe, cmd) -> float:
     return min(m.stamp_s for m in probe.get("state") if m.stamp_s > t_cmd and m.seq <= first.seq)
 
 
-def fly_lemniscate(probe, cmd, since_s: float, clock: str = "real time") -> Run:
+def fly_lemniscate(probe, cmd, since_s: float, clock: str = "real time", cycles: int | None = None) -> Run:
     """In the world that began at ``since_s``: the lemniscate, started by the controller at the world's
     ``PAIRED_START_T_S`` (sent with the command, so its latency does not move the start: under load a command sent
     when the clock got there began 11 samples late), and wait until it is over. ``clock``: "real time" or
-    "lockstep" (when the command is sent: :data:`COMMAND_FROM_T_S`)."""
+    "lockstep" (when the command is sent: :data:`COMMAND_FROM_T_S`); ``cycles``: the lemniscate's (None: the mission's)."""
     # sent ahead: the controller has begun this world's flight (a new world restarts its mission) and the command's
     # latency, up to the time left, no longer decides when the lemniscate begins
     probe.wait_for("state", lambda m: m.stamp_s >= since_s and m.t_s >= COMMAND_FROM_T_S[clock], 30.0)
-    reply = cmd("controller", "lemniscate", at_t_s=PAIRED_START_T_S)
+    reply = cmd("controller", "lemniscate", at_t_s=PAIRED_START_T_S, **({} if cycles is None else {"cycles": cycles}))
     assert reply.ok, reply.message
     ours = lambda m: m.stamp_s >= since_s  # noqa: E731
     first = probe.wait_for("reference", lambda m: ours(m) and m.segment == "lemniscate", 30.0)
@@ -620,6 +630,9 @@ def run(args) -> int:
         print(f"neso demo tdr: --lockstep-pace {args.lockstep_pace:g}: a multiple of real time ≥ 0, with the built-in "
               "world only (PX4 keeps wall-clock timeouts)", flush=True)
         return 2
+    if args.lemniscate_cycles is not None and not 1 <= args.lemniscate_cycles <= MAX_LEMNISCATE_CYCLES:
+        print(f"neso demo tdr: --lemniscate-cycles {args.lemniscate_cycles}: 1-{MAX_LEMNISCATE_CYCLES}", flush=True)
+        return 2
     if args.world == "px4":
         from sim.px4_sitl import missing_px4
 
@@ -631,7 +644,7 @@ def run(args) -> int:
     os.makedirs(workdir, exist_ok=True)
     report = fly_tdr_loop(hub=hub, workdir=workdir, epochs=args.epochs, dashboard_port=args.dashboard_port or None,
                           seed=args.seed, force_offer=args.force_offer, world=args.world,
-                          lockstep_pace=args.lockstep_pace)
+                          lockstep_pace=args.lockstep_pace, lemniscate_cycles=args.lemniscate_cycles)
     print("\n".join(report.lines()))
     print(f"recordings, registry and the neso up log are in {workdir}")
     if args.json:

@@ -42,6 +42,7 @@ from runtime.schema import EstimateMsg, NetworkMsg, ReferenceMsg, SetpointMsg, S
 EXTRA_COMMANDS = ("arm", "disarm", "hold", "abort")
 ALL_COMMANDS = COMMANDS + EXTRA_COMMANDS
 _NEEDS_ARMING = ("takeoff", "hover", "landing_test", "lemniscate")
+MAX_LEMNISCATE_CYCLES = 20  # the ``cycles`` a lemniscate command may ask (6 s each: 2 min at most)
 
 
 @dataclass(frozen=True)
@@ -193,6 +194,10 @@ class ControllerCore:
         at_t_s = args.get("at_t_s")
         if at_t_s is not None and not isinstance(at_t_s, (int, float)):
             return False, f"at_t_s must be the world time in s at which {name} starts, not {at_t_s!r}"
+        cycles = args.get("cycles")
+        if cycles is not None and (name != "lemniscate" or not isinstance(cycles, int) or isinstance(cycles, bool)
+                                   or not 1 <= cycles <= MAX_LEMNISCATE_CYCLES):
+            return False, f"cycles is the lemniscate's, a whole number 1-{MAX_LEMNISCATE_CYCLES}, not {cycles!r} for {name}"
         self._pending_command = (name, dict(args))
         if at_t_s is not None:  # a start on the world's clock, whatever the command's latency (paired runs)
             return True, f"{name} starts at the first sample at or after world t = {at_t_s:.2f} s"
@@ -290,7 +295,7 @@ class ControllerCore:
             return []
         at_t_s = self._pending_command[1].get("at_t_s") if self._pending_command is not None else None
         if self._pending_command is not None and (at_t_s is None or p.state.t_s >= at_t_s - 1e-9):
-            name, _ = self._pending_command
+            name, args = self._pending_command
             self._pending_command = None
             if name == "hold":
                 self.mission.hold(p.state.t_s, p.meas.pos_enu_m)
@@ -298,7 +303,7 @@ class ControllerCore:
                 if self.mission.abort(p.state.t_s, p.meas.pos_enu_m):
                     self.events.append(("warning", "abort: landing now"))
             else:
-                self.mission.start(name, p.state.t_s, p.meas.pos_enu_m)
+                self.mission.start(name, p.state.t_s, p.meas.pos_enu_m, cycles=args.get("cycles"))
         used = None if local_f_hat else self._estimates[p.state.seq]
         f_hat = self._pending_local if used is None else used.f_hat_mps2  # the step takes any 3 floats
         ref = self.mission.reference(p.state.t_s)

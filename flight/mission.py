@@ -99,9 +99,11 @@ class Mission:
     _last: Reference | None = None
     segment: str = "idle"
 
-    def start(self, name: str, t_s: float, pos_enu_m: np.ndarray, *, from_position: bool = False) -> None:
+    def start(self, name: str, t_s: float, pos_enu_m: np.ndarray, *, from_position: bool = False,
+              cycles: int | None = None) -> None:
         """Begin command ``name`` at ``t_s`` from the current reference, or from the vehicle's
-        position ``pos_enu_m`` when nothing was tracked yet or ``from_position``."""
+        position ``pos_enu_m`` when nothing was tracked yet or ``from_position``. ``cycles``: the lemniscate's
+        (None: ``lemniscate_cycles``)."""
         if name not in COMMANDS:
             raise ValueError(f"unknown mission command {name!r}; choose one of {COMMANDS}")
         c = self.config
@@ -126,7 +128,7 @@ class Mission:
         elif name == "lemniscate":
             start = (ox, oy, c.lemniscate_height_m)
             t = self._transit("transit", here, start, t_s)
-            lem = Lemniscate(height_m=c.lemniscate_height_m, cycles=c.lemniscate_cycles)
+            lem = Lemniscate(height_m=c.lemniscate_height_m, cycles=c.lemniscate_cycles if cycles is None else cycles)
             self._append("lemniscate", _Offset(lem, (ox, oy, 0.0)), t, lem.duration_s)
             self._append("hover", _Hold(start), t + lem.duration_s, math.inf)
         elif name == "land":

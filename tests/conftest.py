@@ -8,6 +8,8 @@ from __future__ import annotations
 import functools
 import os
 import re
+import subprocess
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -43,12 +45,17 @@ def pytest_configure(config):
 
 def flight_lanes() -> dict[str, object]:
     """How many flying lanes this run has: one (every flight one after another) unless ``NESO_TEST_LANES=2`` asks for
-    two (:data:`FLIGHT_LANES`, ~900 s instead of ~1300 s on a quiet 2-core machine, but not yet green: every two-lane
-    run measured had failures, tests/README.md). Returns ``lanes`` and why."""
+    two (:func:`next_unit`), which needs a worker to lower its nice again after computing (root's CAP_SYS_NICE).
+    Returns ``lanes`` and why."""
     asked = os.environ.get("NESO_TEST_LANES", "1")
     if asked not in ("1", "2"):
         raise pytest.UsageError(f"NESO_TEST_LANES={asked}: 1 or 2")
-    return {"lanes": int(asked), "why": f"NESO_TEST_LANES={asked}" if "NESO_TEST_LANES" in os.environ else "the default"}
+    why = f"NESO_TEST_LANES={asked}" if "NESO_TEST_LANES" in os.environ else "the default"
+    if asked == "2" and subprocess.run([sys.executable, "-c", "import os; os.nice(1); os.setpriority(os.PRIO_PROCESS, 0, 0)"],
+                                       capture_output=True).returncode != 0:
+        raise pytest.UsageError("NESO_TEST_LANES=2: a worker that computed must fly at nice 0 again, which needs root "
+                                "(CAP_SYS_NICE); run with one lane")
+    return {"lanes": int(asked), "why": why}
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
@@ -77,9 +84,11 @@ ORDER = ("px4", "process", "browser", "sim", "bus", "unit")
 #: 8 failures in the first quarter of the run (tests/README.md).
 FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
-#: The flying lanes: each a group of files flown one after another on one worker; two workers fly both at once and
-#: compute once their lane is done (tests/README.md). The browser's flights are in PX4's lane, as measured last.
-FLIGHT_LANES = {"px4": "px4 and browser flights", "browser": "px4 and browser flights", "process": "process flights"}
+#: Two lanes (``NESO_TEST_LANES=2``): PX4's flights one after another on one worker, with no other flight beside them
+#: (each two-lane run measured with another flight beside PX4 failed: PX4's clock fell behind, tests/README.md) while
+#: the other worker computes; once PX4's are done, the other flights two at a time (each file whole on a worker), the
+#: computing tiers after them (:func:`next_unit`).
+PX4_LANE = "px4 flights"
 ONE_LANE = "flights"  # every flight in one lane (the default: flight_lanes)
 _lanes: dict[str, object] = {}  # the controller's: flight_lanes() of this run
 
@@ -97,22 +106,46 @@ def flies(relative: str) -> bool:
 
 
 def worker_group(nodeid: str, lanes: int | None = None) -> str:
-    """The unit of work a test is in: every file that :func:`flies` in its lane (``lanes`` 2: :data:`FLIGHT_LANES`,
-    1: :data:`ONE_LANE`; None: this run's, one outside the controller; a lane's files run one after another), else its
-    file (a module's tests share its fixtures, so they never split over workers)."""
+    """The unit of work a test is in (``lanes``: 1 or 2; None: this run's, one outside the controller): with one lane
+    every file that :func:`flies` is in :data:`ONE_LANE`, its files one after another; with two, PX4's files are in
+    :data:`PX4_LANE`; any other file is its own unit (a module's tests share its fixtures, so they never split over
+    workers)."""
     relative = nodeid.split("::")[0].removeprefix("tests/")
     if not flies(relative):
         return relative
-    return FLIGHT_LANES[relative.split("/")[0]] if (lanes or _lanes.get("lanes", 1)) == 2 else ONE_LANE
+    if (lanes or _lanes.get("lanes", 1)) == 1:
+        return ONE_LANE
+    return PX4_LANE if relative.split("/")[0] == "px4" else relative
+
+
+def unit_flies(unit: str) -> bool:
+    """Whether a unit of :func:`worker_group` flies in real time."""
+    return unit in (ONE_LANE, PX4_LANE) or flies(unit)
+
+
+def next_unit(waiting: list[str], px4_flying: bool) -> str | None:
+    """Two lanes: the unit a worker with room takes next out of ``waiting`` (in collection order), or None to wait:
+    PX4's lane first; while ``px4_flying`` (PX4's lane waiting or not yet done) only computing units, so that no other
+    flight runs beside PX4's; then flights before computing (the computing tiers, niced, run beside flights; a flight
+    left for last would run alone), the browser's first."""
+    if PX4_LANE in waiting:
+        return PX4_LANE
+    # the browser's first: the dashboard's file is the longest of them (115 s quiet), and last it would fly alone
+    flights = sorted((u for u in waiting if unit_flies(u)), key=lambda u: not u.startswith("browser/"))
+    computing = [u for u in waiting if not unit_flies(u)]
+    if px4_flying:
+        return computing[0] if computing else None
+    return (flights or computing or [None])[0]
 
 
 def pytest_runtest_setup(item):
-    """A worker that computes (unit, sim, bus, offline files) yields the CPU to the one that flies: nice 10 from its
-    first such test on (a worker takes computing tests only once its lane is done, and each lane is one worker's from
-    the start, so no flight ever runs niced)."""
-    if os.environ.get("PYTEST_XDIST_WORKER") and not flies(str(Path(item.path).resolve().relative_to(TESTS))):
-        if os.getpriority(os.PRIO_PROCESS, 0) < COMPUTE_NICE:
-            os.setpriority(os.PRIO_PROCESS, 0, COMPUTE_NICE)
+    """A worker that computes (unit, sim, bus, offline files) yields the CPU to the one that flies: nice 10 for its
+    computing tests, nice 0 again for a flight (two lanes: a worker flies after computing; lowering its nice again
+    needs root's CAP_SYS_NICE, which :func:`flight_lanes` checks before it chooses two)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        nice = 0 if flies(str(Path(item.path).resolve().relative_to(TESTS))) else COMPUTE_NICE
+        if os.getpriority(os.PRIO_PROCESS, 0) != nice:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
 
 
 def machine_cpu_s() -> dict[str, float]:
@@ -150,8 +183,31 @@ def pytest_xdist_make_scheduler(config, log):
         def _split_scope(self, nodeid: str) -> str:
             return worker_group(nodeid)
 
+    class TwoLanes(Groups):
+        """:func:`next_unit` decides what a worker takes; a worker with nothing it may take waits, and every worker is
+        offered work again whenever a test ends anywhere (PX4's lane done frees the other)."""
+
+        def _px4_flying(self) -> bool:
+            return PX4_LANE in self.workqueue or any(
+                not all(work.get(PX4_LANE, {}).values()) for work in self.assigned_work.values() if PX4_LANE in work)
+
+        def _assign_work_unit(self, node) -> None:
+            unit = next_unit(list(self.workqueue), self._px4_flying())
+            if unit is None:
+                return
+            self.assigned_work.setdefault(node, {})[unit] = work = self.workqueue.pop(unit)
+            collection = self.registered_collections[node]
+            node.send_runtest_some([collection.index(nodeid) for nodeid, done in work.items() if not done])
+
+        def mark_test_complete(self, node, item_index: int, duration: float = 0) -> None:
+            nodeid = self.registered_collections[node][item_index]
+            self.assigned_work[node][self._split_scope(nodeid)][nodeid] = True
+            for each in self.nodes:
+                self._reschedule(each)
+
     config.option.loadscopereorder = False
-    return Groups(config, log)
+    return (TwoLanes if _lanes.get("lanes", 1) == 2 else Groups)(config, log)
+
 
 
 def pytest_collection_finish(session):
@@ -206,9 +262,12 @@ def pytest_terminal_summary(terminalreporter):
     lanes: dict[str, float] = {}
     for relative, seconds in sorted(_file_seconds.items(), key=lambda kv: not flies(kv[0])):
         lane = worker_group(f"tests/{relative}") if flies(relative) else "computing"
+        lane = lane if lane in (ONE_LANE, PX4_LANE, "computing") else "other flights"
         lanes[lane] = lanes.get(lane, 0.0) + seconds
-    chosen = f"{_lanes['lanes']} flying lane(s): {_lanes['why']}; " if _lanes else ""
-    terminalreporter.write_line(f"lanes ({chosen}a flying lane's files one after another on one worker): " +
+    chosen = (f"{_lanes['lanes']} flying lane(s), {_lanes['why']}: " + ("a lane's files one after another on one worker"
+              if _lanes["lanes"] == 1 else "PX4's alone beside the computing tiers, then the others two at a time")
+              if _lanes else "one worker")
+    terminalreporter.write_line(f"lanes ({chosen}), test-seconds: " +
                                 ", ".join(f"{lane} {s:.1f} s" for lane, s in lanes.items()))
     slowest = sorted(((s, f) for f, s in _file_seconds.items() if flies(f)), reverse=True)[:12]
     if slowest:

@@ -1,10 +1,14 @@
-"""The controller's operator commands beyond the missions: arm, disarm, hold, abort."""
+"""The controller's operator commands beyond the missions: arm, disarm, hold, abort; a lemniscate's cycles."""
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import numpy as np
 
 from runtime.schema import StateMsg
 from flight.controller import ControllerConfig, ControllerCore
+from tests.busutil import REPO
 from tests.helpers import estimate, fixed_clock
 
 
@@ -100,3 +104,32 @@ def test_a_command_given_a_world_time_starts_at_that_sample_whatever_its_latency
     assert segments == ["hover", "hover", "hover", "transit", "transit", "transit"], segments  # its transit first
     ok, why = core.command("landing_test", {"at_t_s": "soon"})
     assert not ok and "at_t_s" in why
+
+
+def test_a_lemniscate_flies_the_cycles_asked_and_a_wrong_count_is_refused():
+    """``cycles``: the lemniscate flies that many 6 s cycles (the mission's 5 without it); a count that is not a whole
+    number in 1-20, or given to another command, is refused with the reason and nothing starts."""
+    durations = {}
+    for cycles in (None, 3):
+        core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
+        step(core, 0, 0.25)
+        ok, why = core.command("lemniscate", {} if cycles is None else {"cycles": cycles})
+        assert ok, why
+        segments = [step(core, k, 0.25)[1].segment for k in range(1, 2500)]
+        assert segments[-1] == "hover"
+        durations[cycles] = 0.02 * segments.count("lemniscate")  # world s of the lemniscate, its ramp included
+    assert abs(durations[3] - (durations[None] - 2 * 6.0)) < 0.03, durations
+    core = ControllerCore(ControllerConfig(mission="hover"), clock=fixed_clock)
+    step(core, 0, 1.0)
+    for name, args in (("lemniscate", {"cycles": 0}), ("lemniscate", {"cycles": 21}), ("lemniscate", {"cycles": 2.5}),
+                       ("lemniscate", {"cycles": True}), ("landing_test", {"cycles": 3})):
+        ok, why = core.command(name, args)
+        assert not ok and "cycles" in why and "1-20" in why, (name, args, why)
+    assert core._pending_command is None
+
+
+def test_neso_demo_tdr_refuses_a_wrong_cycle_count_in_one_line_before_anything_starts(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "cli.main", "demo", "tdr", "--lemniscate-cycles", "0", "--workdir",
+                           str(tmp_path / "work")], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stdout == "neso demo tdr: --lemniscate-cycles 0: 1-20\n", done
+    assert not (tmp_path / "work").exists(), "nothing started"
