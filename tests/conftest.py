@@ -89,6 +89,9 @@ COMPUTE_NICE = 10
 #: the other worker computes; once PX4's are done, the other flights two at a time (each file whole on a worker), the
 #: computing tiers after them (:func:`next_unit`).
 PX4_LANE = "px4 flights"
+#: Two lanes: the flights that stream NatNet, one after another (Motive's data port is fixed, 1511 multicast on
+#: loopback as a real Motive's: sim/natnet_server.py; two such flights at once would hear each other's frames).
+NATNET_LANE = "natnet flights"
 ONE_LANE = "flights"  # every flight in one lane (the default: flight_lanes)
 _lanes: dict[str, object] = {}  # the controller's: flight_lanes() of this run
 
@@ -115,23 +118,33 @@ def worker_group(nodeid: str, lanes: int | None = None) -> str:
         return relative
     if (lanes or _lanes.get("lanes", 1)) == 1:
         return ONE_LANE
-    return PX4_LANE if relative.split("/")[0] == "px4" else relative
+    if relative.split("/")[0] == "px4":
+        return PX4_LANE
+    return NATNET_LANE if streams_natnet(relative) else relative
+
+
+@functools.cache
+def streams_natnet(relative: str) -> bool:
+    """Whether the test file ``relative`` (under tests/) may stream NatNet (it names it at all: erring towards one
+    lane)."""
+    return "natnet" in (TESTS / relative).read_text().lower()
 
 
 def unit_flies(unit: str) -> bool:
     """Whether a unit of :func:`worker_group` flies in real time."""
-    return unit in (ONE_LANE, PX4_LANE) or flies(unit)
+    return unit in (ONE_LANE, PX4_LANE, NATNET_LANE) or flies(unit)
 
 
 def next_unit(waiting: list[str], px4_flying: bool) -> str | None:
     """Two lanes: the unit a worker with room takes next out of ``waiting`` (in collection order), or None to wait:
     PX4's lane first; while ``px4_flying`` (PX4's lane waiting or not yet done) only computing units, so that no other
     flight runs beside PX4's; then flights before computing (the computing tiers, niced, run beside flights; a flight
-    left for last would run alone), the browser's first."""
+    left for last would run alone), NatNet's lane and the browser's first."""
     if PX4_LANE in waiting:
         return PX4_LANE
-    # the browser's first: the dashboard's file is the longest of them (115 s quiet), and last it would fly alone
-    flights = sorted((u for u in waiting if unit_flies(u)), key=lambda u: not u.startswith("browser/"))
+    # the longest first, so that none is left to fly alone at the end: NatNet's lane (~140 s quiet) and the browser's
+    # files (the dashboard's 115 s)
+    flights = sorted((u for u in waiting if unit_flies(u)), key=lambda u: not (u == NATNET_LANE or u.startswith("browser/")))
     computing = [u for u in waiting if not unit_flies(u)]
     if px4_flying:
         return computing[0] if computing else None
@@ -262,7 +275,7 @@ def pytest_terminal_summary(terminalreporter):
     lanes: dict[str, float] = {}
     for relative, seconds in sorted(_file_seconds.items(), key=lambda kv: not flies(kv[0])):
         lane = worker_group(f"tests/{relative}") if flies(relative) else "computing"
-        lane = lane if lane in (ONE_LANE, PX4_LANE, "computing") else "other flights"
+        lane = lane if lane in (ONE_LANE, PX4_LANE, NATNET_LANE, "computing") else "other flights"
         lanes[lane] = lanes.get(lane, 0.0) + seconds
     chosen = (f"{_lanes['lanes']} flying lane(s), {_lanes['why']}: " + ("a lane's files one after another on one worker"
               if _lanes["lanes"] == 1 else "PX4's alone beside the computing tiers, then the others two at a time")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-from tests.conftest import FLIGHT_TIERS, OFFLINE_MARK, ONE_LANE, PX4_LANE, TIERS, next_unit, unit_flies, worker_group
+from tests.conftest import FLIGHT_TIERS, OFFLINE_MARK, NATNET_LANE, ONE_LANE, PX4_LANE, TIERS, next_unit, unit_flies, worker_group
 
 TESTS = Path(__file__).resolve().parents[1]
 
@@ -37,19 +37,21 @@ def test_the_flying_tiers_files_fly_in_their_lane_unless_marked_offline():
     for f in files:
         group = worker_group(f"tests/{f}::test_x", lanes=2)
         flying = f.split("/")[0] in FLIGHT_TIERS and f not in marked
-        assert group == (PX4_LANE if f.startswith("px4/") else f), (f, group)
+        natnet = flying and "natnet" in (TESTS / f).read_text().lower() and not f.startswith("px4/")
+        assert group == (PX4_LANE if f.startswith("px4/") else NATNET_LANE if natnet else f), (f, group)
         assert unit_flies(group) == flying, f
         assert worker_group(f"tests/{f}::test_x", lanes=1) == (ONE_LANE if flying else f), f
 
 
 def test_two_lanes_fly_px4_alone_then_the_other_flights_before_computing():
     """What a worker takes next with two lanes (conftest.next_unit): PX4's lane first; while it flies, computing
-    only, or nothing (wait); after it the flights, the browser's first, then computing."""
+    only, or nothing (wait); after it the flights, NatNet's and the browser's first, then computing."""
     flight, browser, computing = "process/test_live_flight.py", "browser/test_dashboard.py", "unit/test_mission.py"
     assert next_unit([flight, PX4_LANE, computing], px4_flying=False) == PX4_LANE
     assert next_unit([flight, browser, computing], px4_flying=True) == computing
     assert next_unit([flight, browser], px4_flying=True) is None
     assert next_unit([flight, browser, computing], px4_flying=False) == browser
+    assert next_unit([flight, NATNET_LANE, browser], px4_flying=False) == NATNET_LANE
     assert next_unit([computing, flight], px4_flying=False) == flight
     assert next_unit([computing], px4_flying=False) == computing
     assert next_unit([], px4_flying=False) is None
