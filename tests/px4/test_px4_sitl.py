@@ -1,10 +1,10 @@
-"""Real PX4 v1.16.0 SITL flying the world: `neso up --vehicle px4 --duration 90` (PX4 built by `make setup`, the
+"""Real PX4 v1.16.0 SITL flying the world: `neso up --vehicle px4 --duration 78` (PX4 built by `make setup`, the
 world as its simulator over TCP 4560 in lockstep, real MAVSDK over UDP, real Zenoh, real processes), flown by the
 operator's commands through the real CLI (`neso cmd …`).
 
 One flight (tests in file order): PX4 boots, takes the global origin and fuses the motion capture (EKF2 external
 vision); offboard and arm; the controller's take-off and hover, landing test, lemniscate and its own landing, after
-which PX4's land detector disarms the vehicle; `neso up` ends by itself after 90 s and leaves one recording, with
+which PX4's land detector disarms the vehicle; `neso up` ends by itself after 78 s and leaves one recording, with
 PX4's version, that replays. (PX4's own Land and its offboard-loss failsafe fly in test_px4_failsafe.py and
 test_px4_controller_lost.py, flights of their own.) Figures are printed (pytest -s) for docs/px4.md."""
 from __future__ import annotations
@@ -19,7 +19,8 @@ import pytest
 from tests.busutil import REPO, wait_for
 from tests.px4.conftest import px4_flight
 
-DURATION_S = 90
+DURATION_S = 78  # 90 with the mission's 5 lemniscate cycles: the same 12 s left after the landing
+LEMNISCATE_CYCLES = 3  # of 6 s each: enough to show the z figure and no limit cycle, 12 s shorter than the mission's 5
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +36,11 @@ def operator(flight, *args: str) -> str:
     return done.stdout
 
 
-def fly(flight, mission: str, timeout_s: float) -> np.ndarray:
-    """The controller's ``mission`` from the CLI, until its reference is back to hover; the errors truth −
-    reference (m, ENU, n × 3) over the mission's own segment. No crash meanwhile."""
+def fly(flight, mission: str, timeout_s: float, *args: str) -> np.ndarray:
+    """The controller's ``mission`` (with ``args``, ``name=value``) from the CLI, until its reference is back to
+    hover; the errors truth − reference (m, ENU, n × 3) over the mission's own segment. No crash meanwhile."""
     start = flight.probe.get("reference")[-1].seq
-    operator(flight, "controller", mission)
+    operator(flight, "controller", mission, *args)
     flight.probe.wait_for("reference", lambda m: m.seq > start and m.segment == mission, 15.0)
     flight.probe.wait_for("reference", lambda m: m.seq > start and m.segment == "hover" and
                           any(r.segment == mission and r.seq < m.seq for r in flight.probe.get("reference")[-3000:]),
@@ -94,7 +95,8 @@ def test_the_landing_test_through_px4(flight):
 
 
 def test_the_lemniscate_through_px4(flight):
-    err = fly(flight, "lemniscate", 50)
+    err = fly(flight, "lemniscate", 50, f"cycles={LEMNISCATE_CYCLES}")
+    assert len(err) >= LEMNISCATE_CYCLES * 6 * 50, len(err)  # the cycles asked, flown
     print(f"lemniscate on PX4: RMS {rms_cm(err).round(1)} cm over {len(err)} samples, |xy| at most "
           f"{np.abs(err[:, :2]).max() * 100:.0f} cm")
     assert rms_cm(err)[2] < 5.0, "z: the experiments' figure"
