@@ -405,8 +405,8 @@ class _Loop:
     log: object
     registry: str
     world: str = "builtin"
-    cycles: int | None = None  # each lemniscate's (None: the mission's)
     report: TdrReport = field(default_factory=TdrReport)
+    cycles: int | None = None  # each lemniscate's (None: the mission's)
 
     @property
     def clock(self) -> str:
@@ -429,7 +429,7 @@ class _Loop:
 
         def params(service, timeout_s=5.0, **values):
             return set_params(session, keys, service, values, timeout_s)
-        return cls(probe, events, cmd, params, log, registry, world, TdrReport(world=world))
+        return cls(probe, events, cmd, params, log, registry, world=world, report=TdrReport(world=world))
 
     def close(self) -> None:
         self.events.close()
