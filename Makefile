@@ -47,8 +47,8 @@ demo-tdr: setup
 
 # Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) workers: one flies the real-time
 # tiers one file after another, the other computes (unit, sim, bus, lockstep and offline files) at nice 10 beside it
-# (NESO_TEST_LANES=2: two flying lanes, not yet green; tests/conftest.py); the time per tier and the slowest tests at
-# the end.
+# (NESO_TEST_LANES=2: PX4's flights alone, then the others two at a time, not yet green; tests/README.md); the time per
+# tier and the slowest tests at the end.
 WORKERS ?= 2
 test: setup
 	$(PY) -m pytest -n $(WORKERS) --durations=20

@@ -71,17 +71,8 @@ def pytest_collection_modifyitems(config, items):
 #: got almost nothing and the dashboard's file took 251 s instead of 115 s (loaded run at 43a2213, browser after PX4)
 ORDER = ("px4", "process", "browser", "sim", "bus", "unit")
 #: The tiers that fly in real time. With workers their files run in one lane (or two: :func:`flight_lanes`), a lane's
-#: files one after another on one worker; a worker whose lane is done runs the computing tiers at nice
-#: :data:`COMPUTE_NICE`. Measured at main 7550f7d, quiet machine (one flying lane then: 833 passed in 1453 s): four
-#: workers flying PX4, the browser and two process files at once, load 26, 29 failures and 12 errors of 809
-#: (earlier); three workers, two flying lanes (PX4's, the built-in world's) beside the computing one: 1136 s,
-#: 7 failures (services unanswered for 2 s, a NatNet source silent for 2.4 s; load 12-20). Two workers, two lanes, the
-#: computing tiers after them (quiet machine, a74214b + lanes): PX4's lane beside the browser's and the process
-#: flights, 897 s, 1 failure (PX4's vision timestamps: with the dashboard's Chromium beside it, PX4's clock, the world's,
-#: fell ~9 % behind the wall clock and its time sync with the gateway never held); PX4's and the browser's lane beside
-#: the process flights: 893 s, 1 failure (the TDR loop's recording, then in real time; now in lockstep); the same
-#: with the TDR loop in lockstep 899 s, 1 failure (PX4's vision timestamps); with PX4's world catching up (taken back),
-#: 8 failures in the first quarter of the run (tests/README.md).
+#: files one after another on one worker; a worker that computes runs at nice :data:`COMPUTE_NICE`. What each
+#: schedule measured (one lane green; every two-lane schedule tried had failures) is in tests/README.md, Workers.
 FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
 #: Two lanes (``NESO_TEST_LANES=2``): PX4's flights one after another on one worker, with no other flight beside them
