@@ -52,6 +52,10 @@ def flight(tmp_path_factory, rerun_home):
     f = RecordedFlight(tmp_path_factory.mktemp("flights"))
     try:
         f.probe.wait_for("setpoint", lambda m: m.estimate_source == "estimator" and m.seq > 50, 30.0)
+        # a crash mid-recording: the recorder (nice 5) has begun the flight's first segment. Before, 3 s after the
+        # flight's start was taken for it: with a core busy the first recorder had not begun when it was killed, the
+        # restarted one began segment 0, and no segment 1 came (loaded run at 7b0b621)
+        f.probe.wait_for("recording", lambda m: m.recording and m.segment == 0, 30.0)
         time.sleep(2.0)
         old = f.pid_of("recorder")
         f.kill_seq = f.probe.get("state")[-1].seq
