@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import os
 import re
+import resource
 import subprocess
 import sys
 from collections import defaultdict
@@ -23,6 +24,7 @@ _counts: dict[str, int] = defaultdict(int)
 _spans: dict[str, list[float]] = {}  # group → [first start, last stop] (epoch s)
 _file_seconds: dict[str, float] = defaultdict(float)  # test file under tests/ → its tests' own time
 _cpu_at_start: dict[str, float] = {}  # machine_cpu_s() at the session's start
+_file_cpu_s: dict[str, float] = defaultdict(float)  # test file under tests/ → CPU its tests and their processes used
 
 
 def tier_of(path: Path) -> str:
@@ -152,6 +154,27 @@ def pytest_runtest_setup(item):
             os.setpriority(os.PRIO_PROCESS, 0, nice)
 
 
+def own_cpu_s() -> float:
+    """CPU time, in core-seconds, this process and every process it started and reaped (with their own reaped ones:
+    services, PX4, Chromium) have used so far."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Each phase's report carries the CPU used since the previous phase ended (``cpu_s`` in its user properties):
+    a module's processes reaped at its last teardown count for that file."""
+    report = yield
+    now = own_cpu_s()
+    report.user_properties.append(("cpu_s", now - _cpu_mark.get("at", now)))
+    _cpu_mark["at"] = now
+    return report
+
+
+_cpu_mark: dict[str, float] = {}
+
+
 def machine_cpu_s() -> dict[str, float]:
     """The machine's CPU time since boot, every process on it (``/proc/stat``'s cpu line), in core-seconds:
     ``user`` (nice 0), ``niced``, ``kernel`` (system, interrupts), ``idle`` (with I/O wait), ``stolen``."""
@@ -241,6 +264,7 @@ def pytest_runtest_logreport(report):
     if tier not in TIERS:
         return
     _file_seconds[report.nodeid.split("::")[0].removeprefix("tests/")] += report.duration
+    _file_cpu_s[report.nodeid.split("::")[0].removeprefix("tests/")] += dict(report.user_properties).get("cpu_s", 0.0)
     for group in (tier, "slow") if "slow" in report.keywords else (tier,):
         _seconds[group] += report.duration
         _counts[group] += report.when == "setup"
@@ -277,6 +301,9 @@ def pytest_terminal_summary(terminalreporter):
     if slowest:
         terminalreporter.write_line("the flying lane's slowest files: " +
                                     ", ".join(f"{f} {s:.0f} s" for s, f in slowest))
+    heaviest = sorted(((s, f) for f, s in _file_cpu_s.items()), reverse=True)[:15]
+    terminalreporter.write_line(f"CPU the tests and their processes used: {sum(_file_cpu_s.values()):.0f} "
+                                "core-seconds; the heaviest files: " + ", ".join(f"{f} {s:.0f}" for s, f in heaviest))
     used = {k: v - _cpu_at_start[k] for k, v in machine_cpu_s().items()}
     busy, cores = used["user"] + used["niced"] + used["kernel"] + used["stolen"], os.cpu_count()
     terminalreporter.write_line(
