@@ -4,6 +4,7 @@ A per-vehicle role serves one vehicle (``--vehicle``), or several from this one 
 a,b,c``: a thread per vehicle, each its own node and Zenoh session; a signal stops them all)."""
 from __future__ import annotations
 
+import argparse
 import copy
 import importlib
 import threading
@@ -12,9 +13,22 @@ from cli.busargs import add_bus_arguments, bus_from_args
 from runtime.graph import GRAPH
 
 
+class _RoleArguments(argparse._SubParsersAction):
+    """The role's own arguments added once it is chosen: a service process imports its own module only, not
+    every role's (each one's imports cost every process ~0.5 s of CPU at its start)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        role = GRAPH.get(values[0])
+        chosen = self._name_parser_map.get(values[0])
+        if role is not None and chosen is not None and not getattr(chosen, "role_arguments", False):
+            importlib.import_module(role.module).add_arguments(chosen)
+            chosen.role_arguments = True
+        super().__call__(parser, namespace, values, option_string)
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("run", help="run one service (see `neso run -h` for the list)")
-    roles = p.add_subparsers(dest="service", required=True, metavar="service")
+    roles = p.add_subparsers(dest="service", required=True, metavar="service", action=_RoleArguments)
     for role in GRAPH.values():
         rp = roles.add_parser(role.name, help=role.description, description=role.description)
         add_bus_arguments(rp)
@@ -22,7 +36,6 @@ def add_parser(subparsers) -> None:
         if role.per_vehicle and role.bus_role != "router":
             rp.add_argument("--vehicles", default="",
                             help="serve these vehicles (comma-separated) from this one process instead of --vehicle")
-        importlib.import_module(role.module).add_arguments(rp)
 
 
 def run(args) -> int:
