@@ -53,8 +53,6 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from flight.controller import MAX_LEMNISCATE_CYCLES
-from flight.mission import MissionConfig
 from neso.control import ControlConfig
 from neso.trajectories import Lemniscate
 
@@ -374,11 +372,9 @@ def fly_tdr_loop(*, hub: str, workdir: str, epochs: int = 100, log=print, on_up=
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
     session = open_session(BusConfig(connect=(hub,)))
     try:
-        loop = _Loop.watch(session, log, registry, world)
+        loop = _Loop.watch(session, log, registry, world, lemniscate_cycles)
         loop.report.gains = z.to_dict()
         loop.report.lockstep_pace = lockstep_pace
-        loop.cycles = lemniscate_cycles
-        loop.report.lemniscate_cycles = lemniscate_cycles or MissionConfig().lemniscate_cycles
         try:
             if on_up is not None:
                 on_up(up)
@@ -414,7 +410,9 @@ class _Loop:
         return "lockstep" if self.report.lockstep_pace > 0 else "real time"
 
     @classmethod
-    def watch(cls, session, log, registry: str, world: str = "builtin") -> "_Loop":
+    def watch(cls, session, log, registry: str, world: str = "builtin", cycles: int | None = None) -> "_Loop":
+        """The loop flying on ``session``'s bus; ``cycles``: each lemniscate's (None: the mission's)."""
+        from flight.mission import MissionConfig
         from runtime.client import command, set_params
         from runtime.probe import Probe
         from runtime.schema import Keys
@@ -429,7 +427,8 @@ class _Loop:
 
         def params(service, timeout_s=5.0, **values):
             return set_params(session, keys, service, values, timeout_s)
-        return cls(probe, events, cmd, params, log, registry, world=world, report=TdrReport(world=world))
+        report = TdrReport(world=world, lemniscate_cycles=cycles or MissionConfig().lemniscate_cycles)
+        return cls(probe, events, cmd, params, log, registry, world=world, cycles=cycles, report=report)
 
     def close(self) -> None:
         self.events.close()
@@ -626,6 +625,8 @@ def free_loopback_port() -> int:
 
 
 def run(args) -> int:
+    from flight.controller import MAX_LEMNISCATE_CYCLES
+
     if args.lockstep_pace < 0 or (args.lockstep_pace and args.world != "builtin"):
         print(f"neso demo tdr: --lockstep-pace {args.lockstep_pace:g}: a multiple of real time ≥ 0, with the built-in "
               "world only (PX4 keeps wall-clock timeouts)", flush=True)
