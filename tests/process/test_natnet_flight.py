@@ -34,12 +34,15 @@ def finish(flight: NesoUp, timeout_s: float = 60.0) -> str:
     return out
 
 
-def flown_height_m(truth: list[TruthMsg], setpoints: list) -> float:
-    """The true height (m) at the last setpoint the loop flew (world time): with NatNet the world steps on for
-    Motive after the flight's last state, the vehicle unflown (measured: 0.5 s of it, the last truth 3 cm below the
-    hover it held)."""
+def hover_rms_m(truth: list[TruthMsg], setpoints: list, last_s: float = 3.0) -> float:
+    """RMS (m) of the true height's error from a 1 m hover over the last ``last_s`` of world time the loop flew (up
+    to its last setpoint: with NatNet the world steps on for Motive after the flight's last state, the vehicle
+    unflown; measured: 0.5 s of it, the last truth 3 cm below the hover it held). Over a span, not at one instant:
+    this world's gusts move a held hover ±3 cm (one instant read 5.6 cm off in a quiet run)."""
     last_t_s = setpoints[-1].t_s
-    return [m for m in truth if m.t_s <= last_t_s][-1].pos_enu_m[2]
+    z_m = np.array([m.pos_enu_m[2] for m in truth if last_t_s - last_s <= m.t_s <= last_t_s])
+    assert len(z_m) > 20 * last_s, f"{len(z_m)} truth samples in the last {last_s} s flown"
+    return float(np.sqrt(np.mean((z_m - 1.0) ** 2)))
 
 
 def tracking_rms_m(flight: NesoUp) -> float:
@@ -118,7 +121,7 @@ def test_a_rigid_body_lost_for_a_second_is_flagged_and_the_hover_goes_on(tmp_pat
     assert abs(gap_s - world_s) < 0.04, (gap_s, world_s)
     assert abs(gaps.max() - world_s) < 0.06 and np.sum(gaps > 0.1) == 1, "no state while it was lost, states before and after"
     assert not any(m.crashed for m in truth)
-    assert abs(flown_height_m(truth, flight.probe.get("setpoint")) - 1.0) < 0.05, "hovering again at 1 m"
+    assert hover_rms_m(truth, flight.probe.get("setpoint")) < 0.03, "hovering again at 1 m"
 
 
 def test_frames_at_360_hz_fly_on_the_50_hz_grid_without_a_rate_error(tmp_path):
@@ -133,7 +136,7 @@ def test_frames_at_360_hz_fly_on_the_50_hz_grid_without_a_rate_error(tmp_path):
     assert len(steps_ms) > 300 and set(np.round(steps_ms, 1)) >= {19.4, 22.2}, sorted(set(np.round(steps_ms, 1)))
     assert "discretisation is wrong" not in out, [line for line in out.splitlines() if "discretisation" in line]
     truth = flight.probe.get("truth")
-    assert not any(m.crashed for m in truth) and abs(flown_height_m(truth, flight.probe.get("setpoint")) - 1.0) < 0.05
+    assert not any(m.crashed for m in truth) and hover_rms_m(truth, flight.probe.get("setpoint")) < 0.03
 
 
 def test_two_vehicles_fly_on_one_simulated_motive(tmp_path):
@@ -162,7 +165,7 @@ def test_two_vehicles_fly_on_one_simulated_motive(tmp_path):
         done = [line for line in out.splitlines() if f"{v}/source" in line and "done:" in line]
         assert done, out[-2000:]
         without[v] = int(done[0].split(" frames without")[0].split(", ")[-1])
-        assert not any(m.crashed for m in truth[v]) and abs(flown_height_m(truth[v], setpoints[v]) - 1.0) < 0.05, v
+        assert not any(m.crashed for m in truth[v]) and hover_rms_m(truth[v], setpoints[v]) < 0.03, v
     # each source reads its own body from every frame Motive sent it in: a frame comes without a vehicle's body only
     # when its world had fed no sample near the exposure (Motive's clock is not the worlds'; a world late on a busy
     # machine), which Motive counts. Before: at most 5 frames without each body, a count of the machine's stalls
