@@ -101,3 +101,22 @@ def test_a_per_bus_role_runs_once_for_all_vehicles_and_can_be_turned_off():
     assert specs["dashboard"].nice == 10 and specs["a/controller"].nice == 0
     off = build_parser().parse_args(["up", "--no-dashboard"])
     assert "dashboard" not in [s.name for s in build_specs(off)]
+
+
+def test_a_service_process_parses_its_own_role_only_and_every_role_still_parses():
+    """`neso run hub` loads neither another role's module nor another command's defaults (every service process paid
+    ~0.7 s of CPU for them at its start); each role's own arguments are there once chosen."""
+    import subprocess
+    import sys
+
+    probe = ("import sys; from cli.main import build_parser; "
+             "a = build_parser(sys.argv[1:]).parse_args(sys.argv[1:]); "
+             "print(a.service, sorted(m for m in ('scipy', 'torch', 'flight.estimator', 'services.recorder') "
+             "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", probe, "run", "hub", "--listen", "tcp/127.0.0.1:7447"], cwd=REPO,
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["hub", "[]"], out
+    for role in GRAPH.values():
+        assert build_parser(["run", role.name]).parse_args(["run", role.name]).service == role.name
+    args = build_parser(["run", "recorder"]).parse_args(["run", "recorder", "--flush-period", "0.2"])
+    assert args.cfg__flush_period_s == 0.2
