@@ -6,6 +6,7 @@ last test's end; the run's whole span last."""
 from __future__ import annotations
 
 import functools
+import json
 import os
 import re
 import resource
@@ -304,6 +305,11 @@ def pytest_terminal_summary(terminalreporter):
     heaviest = sorted(((s, f) for f, s in _file_cpu_s.items()), reverse=True)[:15]
     terminalreporter.write_line(f"CPU the tests and their processes used: {sum(_file_cpu_s.values()):.0f} "
                                 "core-seconds; the heaviest files: " + ", ".join(f"{f} {s:.0f}" for s, f in heaviest))
+    files = {f: {"seconds": round(_file_seconds[f], 1), "cpu_s": round(_file_cpu_s.get(f, 0.0), 1), "flies": flies(f)}
+             for f in sorted(_file_seconds, key=_file_seconds.get, reverse=True)}
+    (TESTS.parent / "out").mkdir(exist_ok=True)
+    (TESTS.parent / "out" / "test-files.json").write_text(json.dumps(files, indent=1) + "\n")
+    terminalreporter.write_line("every file's seconds and CPU: out/test-files.json")
     used = {k: v - _cpu_at_start[k] for k, v in machine_cpu_s().items()}
     busy, cores = used["user"] + used["niced"] + used["kernel"] + used["stolen"], os.cpu_count()
     terminalreporter.write_line(
