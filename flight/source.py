@@ -104,7 +104,8 @@ class SourceConfig:
     lockstep: bool = False
     duration_s: float = option(0.0, flag="--duration", unit="s", help="seconds of flight, 0 = until stopped")
     wait_for: tuple[str, ...] = option(("estimator", "controller"), cli=comma_list(),
-                                       help="services whose liveliness a lockstep run waits for before the first sample")
+                                       help="services whose liveliness the world waits for before its first sample (lockstep: "
+                                            "required; real time: at most 30 s)")
     lockstep_resend_s: float = 1.0
     lockstep_pace: float = option(0.0, help="lockstep: at most this multiple of real time (0: as fast as the services "
                                             "answer; a paced flight leaves the machine's CPU to the rest)")

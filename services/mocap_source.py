@@ -55,7 +55,7 @@ def natnet_description(offer, rigid_body: str, **more: str) -> dict[str, str]:
 
 def start_world(config: SourceConfig):
     """The simulated world with its simulated Motive in a child process (services/natnet_world.py): (process,
-    pipe, the Motive's command port)."""
+    pipe, the Motive's command port). Its Motive answers at once; its world steps from :data:`WORLD_GO` on."""
     import multiprocessing
 
     from services.natnet_world import run_world
@@ -98,6 +98,12 @@ def run_sim_natnet(node, config: SourceConfig, world, offer) -> None:
 
     node.subscribe("setpoint", on_setpoint)
     threading.Thread(target=relay_truth, name="truth", daemon=True).start()
+    from services.natnet_world import WORLD_GO
+    from services.source import wait_for_loop
+
+    wait_for_loop(node, config.wait_for, required=False)
+    with send_lock:
+        conn.send_bytes(WORLD_GO)  # the world's first step
     node.event("info", f"state from NatNet: simulated world → simulated Motive (NatNet {offer.version}, "
                        f"127.0.0.1:{port}, {config.natnet.up_axis}-up) → this source's NatNet client")
     n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None

@@ -24,6 +24,7 @@ from runtime.schema import SetpointMsg, state_measurement
 from sim.natnet_server import FeedStream, NatNetServer, NatNetServerConfig, StreamModel, WorldStream
 
 BODY_ID = 1
+WORLD_GO = b"go"  # the source's word on the pipe to start the world: its loop is alive
 
 
 def _mavlink_vehicle(config: SourceConfig, core: SimSource):
@@ -50,8 +51,8 @@ def stream_model(config: SourceConfig, latency_s: float) -> StreamModel:
 
 
 def run_world(conn, config: SourceConfig) -> None:
-    """The child's main: ``("ready", command_port)`` once the server listens, then a truth per period until
-    the pipe closes or brings an empty message."""
+    """The child's main: ``("ready", command_port)`` once the server listens; from :data:`WORLD_GO` on, a truth per
+    period until the pipe closes or brings an empty message."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the source ends us
     core = SimSource(config, clock=time.monotonic, mocap_rate_hz=config.natnet.rate_hz)
     samples: list = []
@@ -68,6 +69,9 @@ def run_world(conn, config: SourceConfig) -> None:
         stream = (FeedStream(nn.feed_port, model, body_id=nn.body_id, anchor_s=anchor_s) if server is None else
                   WorldStream(server, model, body_id=BODY_ID, anchor_s=anchor_s, seed=config.seed))
         conn.send(("ready", nn.port if server is None else server.command_port))
+        if conn.recv_bytes() != WORLD_GO:  # the source says go once its loop is alive; an empty message: stop
+            return
+        stream.anchor_s = time.monotonic() - core.sim.t_s
         period = 1.0 / config.rate_hz
         next_tick = time.monotonic()
         while True:

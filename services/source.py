@@ -128,8 +128,7 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
         return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
 
     node.on_command(on_command)
-    if config.lockstep:
-        _wait_for_services(node, config.wait_for)
+    wait_for_loop(node, config.wait_for, required=config.lockstep)
     n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
     period = 1.0 / config.rate_hz
     if config.lockstep:  # a paced lockstep flight steps at most every period / pace of the wall clock
@@ -223,7 +222,13 @@ def _publish_state(node, config: SourceConfig, state: StateMsg, put_state, last_
                 put_state(state)
 
 
-def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) -> None:
+def wait_for_loop(node, names: tuple[str, ...], *, required: bool, timeout_s: float | None = None) -> None:
+    """Until every service in ``names`` is alive on the bus, before the world's first sample: a world that started
+    before its loop flew unanswered until the controller came up, which then took the flight as one it joined and held
+    the vehicle where it had fallen to (6 cm below its hover, once the source started faster than the controller).
+    ``required`` (lockstep): one still missing after ``timeout_s`` (default 60 s) is an error; in real time the world
+    starts anyway after it (default 30 s), saying which are missing."""
+    timeout_s = timeout_s if timeout_s is not None else 60.0 if required else 30.0
     deadline = time.monotonic() + timeout_s
     missing = list(names)
     while missing and not node.stopping:
@@ -231,9 +236,12 @@ def _wait_for_services(node, names: tuple[str, ...], timeout_s: float = 60.0) ->
         if not missing:
             break
         if time.monotonic() > deadline:
-            raise TimeoutError(f"lockstep: {missing} not alive after {timeout_s:.0f} s")
+            if required:
+                raise TimeoutError(f"lockstep: {missing} not alive after {timeout_s:.0f} s")
+            node.event("warning", f"{missing} not alive after {timeout_s:.0f} s: the world starts without them")
+            return
         node.wait(0.05)
-    node.log(f"lockstep: {list(names)} alive, starting")
+    node.log(f"{'lockstep' if required else 'real time'}: {list(names)} alive, starting")
 
 
 def natnet_refusal(config: SourceConfig) -> str:
