@@ -111,15 +111,19 @@ def test_a_rigid_body_lost_for_a_second_is_flagged_and_the_hover_goes_on(tmp_pat
     assert 98 <= frames_without <= 102, done  # the world's 100 Hz exposures of its lost second (world time 5-6 s)
     # the lost second is the world's: on the wall clock it lasted as long as the world took for it (its truth's stamps
     # at world time 5 and 6 s: longer than 1 s when a loaded machine slows the world); the source flagged that span,
-    # and no state came in it, within two frames and a control period
+    # and no state came in it, within two frames and a control period. The states' one gap is counted in their frames'
+    # (world) times: on the wall clock a busy machine may also space two states 0.1 s apart elsewhere (seen with two
+    # flights side by side), which is not the source's doing
     truth = flight.probe.get("truth")
     world_s = next(m.stamp_s for m in truth if m.t_s >= 6.0) - next(m.stamp_s for m in truth if m.t_s >= 5.0)
     states = flight.probe.get("state")
     gaps = np.diff([m.stamp_s for m in states])
+    world_gaps = np.diff([m.t_s for m in states])
     print(f"lost for 1 s of world time = {world_s:.3f} s of wall time; flagged {gap_s:.3f} s; no state for "
-          f"{gaps.max():.3f} s")
+          f"{gaps.max():.3f} s ({world_gaps.max():.3f} s of world time)")
     assert abs(gap_s - world_s) < 0.04, (gap_s, world_s)
-    assert abs(gaps.max() - world_s) < 0.06 and np.sum(gaps > 0.1) == 1, "no state while it was lost, states before and after"
+    assert abs(gaps.max() - world_s) < 0.06, "no state while it was lost"
+    assert abs(world_gaps.max() - 1.0) < 0.06 and np.sum(world_gaps > 0.1) == 1, "states before and after, one gap"
     assert not any(m.crashed for m in truth)
     assert hover_rms_m(truth, flight.probe.get("setpoint")) < 0.03, "hovering again at 1 m"
 
