@@ -1,4 +1,5 @@
-"""The px4 tier's flight: `neso up --vehicle px4` on a free PX4 instance, one per test module (``flight``)."""
+"""The px4 tier's flight: `neso up --vehicle px4` on a free PX4 instance (``flight``: one shared by the modules that
+use it, one after another; a module with flags of its own opens its own with :func:`px4_flight`)."""
 from __future__ import annotations
 
 import contextlib
@@ -91,7 +92,32 @@ def px4_flight(tmp_path_factory, *extra: str):
     assert "Traceback" not in out, out[-4000:]
 
 
+_shared: dict = {}  # the flight the modules of the default ``flight`` share: "context", "flight", "last"
+
+
+def _shares(item) -> bool:
+    """Whether ``item`` (a test, or None) flies the default ``flight`` (its module defines none of its own)."""
+    return item is not None and "flight" in item.fixturenames and "flight" not in vars(item.module)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_teardown(item, nextitem):
+    """Before a test's fixtures end: whether the next test to run still flies the shared flight."""
+    if _shares(item):
+        _shared["last"] = not _shares(nextitem)
+
+
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
-    with px4_flight(tmp_path_factory) as f:
-        yield f
+    """One PX4 flight shared by the modules that use this fixture, one after another (the controller lost, the
+    failsafes, motion capture lost: each test takes off again with :meth:`Px4Flight.airborne` after the one before
+    left it landed and disarmed): one PX4 boot for them instead of one each (~15 s with its start and stop). It
+    ends, and its log is checked, once the next test to run flies something else."""
+    if "context" not in _shared:
+        _shared["context"] = px4_flight(tmp_path_factory)
+        _shared["flight"] = _shared["context"].__enter__()
+    yield _shared["flight"]
+    if _shared.pop("last", False):
+        context = _shared.pop("context")
+        _shared.pop("flight")
+        context.__exit__(None, None, None)

@@ -1,4 +1,4 @@
-"""The controller killed mid-lemniscate with real PX4 v1.16.0 SITL (a flight of its own): its setpoints stop, the
+"""The controller killed mid-lemniscate with real PX4 v1.16.0 SITL (on the tier's shared flight: tests/px4/conftest.py): its setpoints stop, the
 gateway's failsafe commands PX4's Hold (available indoors because the gateway gave PX4 a global origin), then, with
 no operator, PX4's own Land; PX4's land detector disarms. Nothing of the recording is lost."""
 from __future__ import annotations
@@ -33,7 +33,7 @@ def test_the_controller_killed_mid_lemniscate_px4_holds_then_lands_and_disarms(f
     assert any("commanding hold" in line for line in said) and any("commanding land" in line for line in said)
     assert any("Landing detected" in line for line in said) and any("Disarmed by landing" in line for line in said)
     assert truth[-1].on_ground and not any(m.crashed for m in truth)
-    path = wait_for("the recorder closes the flight", lambda: sorted(flight.recordings.glob("*.rrd")), 20)[0]
+    path = wait_for("the recorder closes the flight", lambda: sorted(flight.recordings.glob("*.rrd")), 20)[-1]  # the newest
     time.sleep(2.0)
     rec = read_recording(path)
     modes = {m.flight_mode for m in rec.channel("telemetry").messages() if m.stamp_s > killed_s - 5}

@@ -1,6 +1,6 @@
 """Failsafes with real PX4 v1.16.0 SITL: `neso up --vehicle px4`, a take-off through the controller, then kill -9
 of the estimator mid-hover (the controller's local ESO flies on; the launcher restarts it) and then of the gateway
-mid-lemniscate (PX4's own offboard-loss failsafe) (a flight of its own: the ``flight`` fixture is per module)."""
+mid-lemniscate (PX4's own offboard-loss failsafe) (on the tier's shared flight: tests/px4/conftest.py)."""
 from __future__ import annotations
 
 import os

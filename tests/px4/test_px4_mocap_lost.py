@@ -1,4 +1,4 @@
-"""Motion capture lost with real PX4 v1.16.0 SITL (`neso cmd source lose_tracking`, a flight of its own, tests in
+"""Motion capture lost with real PX4 v1.16.0 SITL (`neso cmd source lose_tracking`, on the tier's shared flight, tests in
 file order): the gateway tells PX4 the external vision failed (ODOMETRY quality -1, which EKF2 does not fuse with
 EKF2_EV_QMIN 1) until states come back, and flies the vehicle level meanwhile. Half a second lost: PX4 told within
 the gateway's pose_lost_after_s (0.3 s) and again when tracked, over exactly the span the world lost (measured in the world's time, so a
