@@ -11,14 +11,17 @@ class ServiceUnavailable(RuntimeError):
     """No reply from the service (not running, or not reachable on this bus)."""
 
 
-def _query(session, key: str, payload: bytes, reply_type, timeout_s: float, attempt_s: float = 0.25):
-    """The first reply to a query on ``key``. A session that has just opened may not know the
-    service's queryable yet, or the answer may take longer, so the query is repeated every
-    ``attempt_s`` until ``timeout_s`` (a get or a set of absolute values is idempotent; a command
-    carries a request id the service answers once, :class:`runtime.node.AnsweredOnce`)."""
+def _query(session, key: str, payload: bytes, reply_type, timeout_s: float):
+    """The first reply to a query on ``key`` within ``timeout_s``. Each attempt waits for the answer until the
+    deadline: a service that takes seconds to check a change (certifying a network on a busy machine) answers within
+    it. (Attempts of 0.25 s each missed every answer slower than that, and each one re-asked queued the same check
+    again behind the first: the dashboard showed "no reply" for an L_N the estimator applied.) A query no service
+    took (a session that has just opened may not know the service's queryable yet) ends at once and is asked again
+    (a get or a set of absolute values is idempotent; a command carries a request id the service answers once,
+    :class:`runtime.node.AnsweredOnce`)."""
     deadline = time.monotonic() + timeout_s
     while True:
-        for reply in session.get(key, payload=payload, timeout=attempt_s):
+        for reply in session.get(key, payload=payload, timeout=max(0.05, deadline - time.monotonic())):
             if reply.ok is None:  # the service's refusal (a reply_type), or Zenoh's own "Timeout": ask again
                 try:
                     return reply_type.from_bytes(reply.err.payload.to_bytes())
