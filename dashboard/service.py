@@ -42,6 +42,10 @@ class DashboardConfig:
     ui_rate_hz: float = option(20.0, flag="--ui-rate", unit="Hz", help="pose updates per second (plots at half)")
     window_s: float = option(10.0, flag="--window", unit="s", help="time shown in plots and figures")
     nice: int = option(10, help="CPU niceness added at start: the page must never slow the control loop")
+    request_timeout_s: float = option(8.0, flag="--request-timeout", unit="s",
+                                      help="how long a change or command sent from the page waits for the service's "
+                                           "answer (the service checks it first: certifying a network took over 2 s "
+                                           "on a busy machine)")
 
 
 SUPERSEDED = "superseded by a newer change before it was sent"
@@ -60,7 +64,8 @@ class BusFacade:
     ones, and two changes of the same parameters never overtake each other on the pool's threads.
     Commands have no key: every one is an intent (arm, then take off) and each is sent."""
 
-    def __init__(self, session, *, timeout_s: float = 2.0, workers: int = 3) -> None:
+    def __init__(self, session, *, timeout_s: float, workers: int = 3) -> None:
+        """``timeout_s``: how long each request waits for its service's answer (:attr:`DashboardConfig.request_timeout_s`)."""
         self.session = session
         self.timeout_s = timeout_s
         self.pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dashboard-bus")
@@ -178,7 +183,7 @@ class Dashboard:
         self.model = FleetModel(window_s=config.window_s)
         self.lock = threading.Lock()
         self.observer = Observer(bus)
-        self.facade = BusFacade(self.observer.session)
+        self.facade = BusFacade(self.observer.session, timeout_s=config.request_timeout_s)
         host, port = config.host, config.port
         self.server = viser.ViserServer(host=host, port=port, label="Neural-ESO", verbose=False)
         if self.server.get_port() != port:

@@ -44,9 +44,10 @@ def choice():
 class Estimator:
     """The estimator role's node with its real parameter set; records what its handlers got."""
 
-    def __init__(self, endpoint: str, choice: NetworkChoice, command_s: float = 0.0) -> None:
+    def __init__(self, endpoint: str, choice: NetworkChoice, command_s: float = 0.0, check_s: float = 0.0) -> None:
+        """``command_s``, ``check_s``: how long each command, each parameter check takes."""
         self.params = ParamSet(estimator_params(EstimatorConfig(network=BASE), 1.0),
-                               check=lambda p: choice.refusal(p["lipschitz_bound"]))
+                               check=lambda p: (time.sleep(check_s), choice.refusal(p["lipschitz_bound"]))[1])
         self.node = Node("estimator", vehicle="uav1", bus=peer(endpoint), params=self.params)
         self.states: list[StateMsg] = []
         self.commands: list[tuple[str, dict]] = []
@@ -186,3 +187,26 @@ def test_liveliness_while_started_and_a_health_report_every_second(endpoint, cho
     finally:
         sub.undeclare()
         hsub.undeclare()
+
+
+def test_a_change_the_service_takes_seconds_to_check_reaches_the_page_as_its_answer(endpoint, choice, client):
+    """The dashboard's requests wait :attr:`DashboardConfig.request_timeout_s` for the service's answer: an L_N the
+    estimator took over 2 s to certify on a busy machine was shown as "refused · ServiceUnavailable" (the page's old
+    2 s) while the estimator applied it."""
+    import threading
+
+    from dashboard.service import BusFacade, DashboardConfig
+
+    slow = Estimator(endpoint, choice, check_s=3.0)
+    slow.node.start()
+    facade = BusFacade(client, timeout_s=DashboardConfig().request_timeout_s)
+    answered, replies = threading.Event(), []
+    try:
+        bound = get_params(client, KEYS, "estimator").values["lipschitz_bound"]
+        facade.set_params("uav1", "estimator", {"lipschitz_bound": bound}, lambda ok, text: (replies.append((ok, text)),
+                                                                                             answered.set()))
+        assert answered.wait(15.0)
+    finally:
+        facade.close()
+        slow.node.close()
+    assert replies == [(True, f"estimator will apply {{'lipschitz_bound': {bound!r}}}")], replies

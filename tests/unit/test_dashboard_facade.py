@@ -7,7 +7,7 @@ from dashboard.service import SUPERSEDED, BusFacade
 
 
 def test_a_newer_change_replaces_the_waiting_one_and_none_overtakes():
-    facade = BusFacade(session=None, workers=3)
+    facade = BusFacade(session=None, timeout_s=2.0, workers=3)
     release, sent, replies = threading.Event(), [], {}
     done = threading.Semaphore(0)
 
@@ -39,7 +39,7 @@ def test_a_newer_change_replaces_the_waiting_one_and_none_overtakes():
 
 
 def test_commands_are_never_superseded():
-    facade = BusFacade(session=None, workers=1)
+    facade = BusFacade(session=None, timeout_s=2.0, workers=1)
     sent, done = [], threading.Semaphore(0)
     for name in ("arm", "takeoff", "hold", "abort"):
         facade._submit(lambda name=name: (sent.append(name), (True, name))[1], lambda ok, text: done.release())
