@@ -15,6 +15,31 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
                  "--enable-unsafe-swiftshader"]
 BROWSER_NICE = 19
+#: The shortest time between a page's animation frames (ms): 10 frames a second, the dashboard's own render rate (it
+#: sends what changed 10 times a second). viser's page applies what it received once per animation frame, so each
+#: update is still applied, at most one period later. Without a GPU, Chromium renders the page's 3D view in software
+#: as often as it can: 1.0 core in its GPU process and 0.3 in the page's for 12-16 frames a second at 1600×1000
+#: (40-70 ms of CPU a frame at any window size), which starved the flight and the tests beside it
+#: (tests/README.md, What the browser paid).
+FRAME_PERIOD_MS = 100
+#: Every page's ``requestAnimationFrame`` callbacks run together once per :data:`FRAME_PERIOD_MS` (then on the next
+#: real frame, so painting stays in step with the compositor); ``cancelAnimationFrame`` as before.
+THROTTLE_FRAMES_JS = """(() => {
+  const raf = window.requestAnimationFrame.bind(window);
+  let queue = new Map(), next = 1, pending = false, last = 0;
+  const flush = (t) => { pending = false; last = performance.now(); const q = queue; queue = new Map();
+                         q.forEach((cb) => cb(t)); };
+  window.requestAnimationFrame = (cb) => {
+    const id = next++;
+    queue.set(id, cb);
+    if (!pending) {
+      pending = true;
+      setTimeout(() => raf(flush), Math.max(0, %d - (performance.now() - last)));
+    }
+    return id;
+  };
+  window.cancelAnimationFrame = (id) => { queue.delete(id); };
+})();""" % FRAME_PERIOD_MS
 
 
 def launch(pw):
@@ -24,6 +49,14 @@ def launch(pw):
         pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium (apt-get install chromium); "
                     "the dashboard's browser tests need a real browser", pytrace=False)
     return pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+
+
+def new_page(browser, width: int, height: int):
+    """A page of ``width`` × ``height`` px in ``browser`` whose animation frames come at most every
+    :data:`FRAME_PERIOD_MS`."""
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.add_init_script(THROTTLE_FRAMES_JS)
+    return page
 
 
 def _descendants(root: int) -> list[int]:
@@ -124,7 +157,7 @@ def open_dashboard(browser, url: str, timeout_s: float = 40.0):
     server starts)."""
     from playwright.sync_api import Error as PlaywrightError
 
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    page = new_page(browser, 1600, 1000)
     page._neso_watch = PageWatch(page)  # read by watch_of() when a wait fails
     deadline = time.monotonic() + timeout_s
 

@@ -22,8 +22,8 @@ import pytest
 from neso.netfile import load_network, save_network
 from runtime.client import command, get_params
 from runtime.schema import EventMsg, Keys, StateMsg, TelemetryMsg
-from tests.browser.chromium import (PLOT_POINTS_JS, STATUS_JS, choose, dashboard_page, hide_notifications, open_dashboard,
-                                    set_lipschitz, status, tab, text, wait_status, wait_text)
+from tests.browser.chromium import (FRAME_PERIOD_MS, PLOT_POINTS_JS, STATUS_JS, choose, dashboard_page, hide_notifications,
+                                    new_page, open_dashboard, set_lipschitz, status, tab, text, wait_status, wait_text)
 from tests.busutil import REPO, NesoUp, children_of, free_port, peer
 from tests.helpers import candidate
 
@@ -82,6 +82,15 @@ def test_page_loads_and_shows_the_flight(flight):
     assert 35.0 < rate < 65.0, rate  # a 50 Hz loop, on a loaded 2-core machine
 
 
+def test_the_pages_frames_keep_coming_at_most_one_per_render_period(flight):
+    """The harness's frame throttle (tests/browser/chromium.py, FRAME_PERIOD_MS): the page still animates, at most as
+    often as the dashboard renders."""
+    frames = flight.page.evaluate("""() => new Promise(done => { let n = 0; const t0 = performance.now();
+        const frame = () => { n++; if (performance.now() - t0 < 2000) requestAnimationFrame(frame); else done(n); };
+        requestAnimationFrame(frame); })""")
+    assert 5 <= frames <= 2000 / FRAME_PERIOD_MS + 1, frames
+
+
 def test_a_fresh_page_shows_status_plots_and_certificate_as_soon_as_it_shows_anything(flight):
     """A page opened mid-flight: the status line (armed/mode, pathway, network, certificate,
     recording), all five plots with samples and the certificate's verdict are there when the page's
@@ -99,7 +108,7 @@ def test_a_fresh_page_shows_status_plots_and_certificate_as_soon_as_it_shows_any
             and re.search(r"certificate (holds|FAILS): state slope", page_text)),
         "plots": lambda st, points, page_text: len(points) == 5 and min(points) >= 10,
     }
-    page = flight.browser.new_page(viewport={"width": 1280, "height": 800})
+    page = new_page(flight.browser, 1280, 800)
     try:
         started = time.monotonic()
         page.goto(flight.url, wait_until="load", timeout=20000)
@@ -342,7 +351,7 @@ def test_screenshots_at_1600x1000_and_1280x800(flight):
     status line, five plots, the 3D view and the figures, nothing cut off."""
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     for width, height in ((1600, 1000), (1280, 800)):
-        page = flight.page if width == 1600 else flight.browser.new_page(viewport={"width": width, "height": height})
+        page = flight.page if width == 1600 else new_page(flight.browser, width, height)
         try:
             if page is not flight.page:
                 page.goto(flight.url, wait_until="load", timeout=20000)
