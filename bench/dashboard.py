@@ -21,7 +21,9 @@ Chromium is kept at nice 19 (:class:`tests.browser.chromium.KeptReniced`: every 
 Chromium run as root lifts some of its threads back to nice −8 and 0): on an arena the operator's
 browser is on another machine; here it shares the 2 cores with the loop. (Under SCHED_IDLE the
 pages did not load at all while other work kept the machine busy.)
-The dashboard process itself runs at nice 10 (its ``--nice`` default).
+The dashboard process itself runs at nice 10 (its ``--nice`` default). The pages render every frame Chromium
+gives them (``frame_period_ms=None``; the browser tests hold theirs to the dashboard's 10 Hz): the worst case, each
+software-rendered page ~1.3 cores.
 """
 from __future__ import annotations
 
@@ -95,7 +97,8 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
                 with sync_playwright() as pw:
                     browser = launch(pw)
                     try:
-                        pages = [open_dashboard(browser, f"http://127.0.0.1:{web}") for _ in range(browsers)]
+                        pages = [open_dashboard(browser, f"http://127.0.0.1:{web}", frame_period_ms=None)
+                                 for _ in range(browsers)]
                         with KeptReniced(cpus=browser_cpus):
                             dashboard_pid = role_pid(proc.pid, "dashboard")
                             cpu0 = cpu_s([dashboard_pid])
@@ -104,7 +107,7 @@ def fly(flight_s: float, *, browsers: int, dashboard: bool | None = None, extra_
                             out["dom_s"] = _bus_to_dom(probe, keys, pages[0])
                             out["click_s"] = _click_to_bus(pages[0], estimates)
                             opened = time.monotonic()  # one more page on the running dashboard, among the others
-                            open_dashboard(browser, f"http://127.0.0.1:{web}").close()
+                            open_dashboard(browser, f"http://127.0.0.1:{web}", frame_period_ms=None).close()
                             out["fresh_page_s"] = time.monotonic() - opened
                     finally:
                         browser.close()

@@ -22,8 +22,8 @@ BROWSER_NICE = 19
 #: (40-70 ms of CPU a frame at any window size), which starved the flight and the tests beside it
 #: (tests/README.md, What the browser paid).
 FRAME_PERIOD_MS = 100
-#: Every page's ``requestAnimationFrame`` callbacks run together once per :data:`FRAME_PERIOD_MS` (then on the next
-#: real frame, so painting stays in step with the compositor); ``cancelAnimationFrame`` as before.
+#: A page's ``requestAnimationFrame`` callbacks run together once per PERIOD_MS at most (then on the next real frame,
+#: so painting stays in step with the compositor); ``cancelAnimationFrame`` as before.
 THROTTLE_FRAMES_JS = """(() => {
   const raf = window.requestAnimationFrame.bind(window);
   let queue = new Map(), next = 1, pending = false, last = 0;
@@ -34,12 +34,12 @@ THROTTLE_FRAMES_JS = """(() => {
     queue.set(id, cb);
     if (!pending) {
       pending = true;
-      setTimeout(() => raf(flush), Math.max(0, %d - (performance.now() - last)));
+      setTimeout(() => raf(flush), Math.max(0, PERIOD_MS - (performance.now() - last)));
     }
     return id;
   };
   window.cancelAnimationFrame = (id) => { queue.delete(id); };
-})();""" % FRAME_PERIOD_MS
+})();"""
 
 
 def launch(pw):
@@ -51,11 +51,12 @@ def launch(pw):
     return pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
 
 
-def new_page(browser, width: int, height: int):
+def new_page(browser, width: int, height: int, frame_period_ms: float | None = FRAME_PERIOD_MS):
     """A page of ``width`` × ``height`` px in ``browser`` whose animation frames come at most every
-    :data:`FRAME_PERIOD_MS`."""
+    ``frame_period_ms`` (None: as often as Chromium renders them, as `make bench` measures the worst case)."""
     page = browser.new_page(viewport={"width": width, "height": height})
-    page.add_init_script(THROTTLE_FRAMES_JS)
+    if frame_period_ms is not None:
+        page.add_init_script(THROTTLE_FRAMES_JS.replace("PERIOD_MS", f"{frame_period_ms:g}"))
     return page
 
 
@@ -152,12 +153,12 @@ def watch_of(page) -> str:
     return w.report() if w is not None else ""
 
 
-def open_dashboard(browser, url: str, timeout_s: float = 40.0):
-    """A 1600×1000 page on the dashboard at ``url``, once it shows its figures (retried while the
+def open_dashboard(browser, url: str, timeout_s: float = 40.0, frame_period_ms: float | None = FRAME_PERIOD_MS):
+    """A 1600×1000 page on the dashboard at ``url`` (:func:`new_page`), once it shows its figures (retried while the
     server starts)."""
     from playwright.sync_api import Error as PlaywrightError
 
-    page = new_page(browser, 1600, 1000)
+    page = new_page(browser, 1600, 1000, frame_period_ms)
     page._neso_watch = PageWatch(page)  # read by watch_of() when a wait fails
     deadline = time.monotonic() + timeout_s
 
