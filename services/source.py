@@ -157,7 +157,9 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
                     node.event("warning", f"the world's motion capture lost the vehicle at t={truth.t_s:.2f} s: "
                                           "no state until it is back")
         if period > 0:
-            next_tick += period
+            # lockstep: from this sample's stamp, so a late sample is never followed by one sooner than period (a
+            # fixed grid would catch up, faster than the pace); real time: on the grid, catching up a late one
+            next_tick = state.stamp_s + period if config.lockstep else next_tick + period
             delay = next_tick - time.monotonic()
             if delay > 0:
                 node.wait(delay)
