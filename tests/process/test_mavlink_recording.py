@@ -1,7 +1,8 @@
 """A flight is a flight: the recorder in the MAVLink flow (`neso up --vehicle mavlink`, the sim as a
 PX4 on MAVLink, real MAVSDK, real Zenoh, real files), and Ctrl-C stopping everything at once.
 
-One `neso up`, in order: 30 s untouched (nothing flies: no recording); the controller armed and
+One `neso up`, in order: untouched for 2 s longer than the recorder's longest window (nothing flies: no recording;
+12 s, 30 s before: the recorder decides on 0.5-10 s windows); the controller armed and
 commanding a take-off while the vehicle stays disarmed (what made 104 recordings of 0.1 s: the
 controller's thrust said "flying", the telemetry said "disarmed", ten times a second): still none;
 then a real flight, PX4 armed and in offboard, take-off, hover, land: exactly one recording;
@@ -19,9 +20,14 @@ from recordings.reader import read_recording
 from runtime.client import command
 from runtime.graph import role as graph_role
 from runtime.probe import Probe
+from services.recorder import RecorderConfig
 from tests.busutil import children_of, free_port, neso, peer, role_pid, session, wait_for
 
 TOPICS = ("state", "setpoint", "reference", "telemetry", "recording")
+_RECORDER = RecorderConfig()
+#: longer than every window the recorder decides on (a flight's start, its end, a source's silence, a resume)
+UNTOUCHED_S = max(_RECORDER.start_after_s, _RECORDER.idle_end_s, _RECORDER.silence_end_s,
+                  _RECORDER.resume_window_s) + 2.0
 
 
 def _files(directory: Path) -> list[Path]:
@@ -59,7 +65,7 @@ def test_the_mavlink_flow_records_one_flight_per_flight_and_stops_within_3_s_of_
                 assert reply.ok, (service, name, reply.message)
 
             probe.wait_for("telemetry", lambda m: m.connected, 40.0)
-            time.sleep(30.0)  # untouched
+            time.sleep(UNTOUCHED_S)
             assert _files(recordings) == [], "nothing flew, yet something was recorded"
 
             cmd("controller", "arm")  # the controller flies a take-off; PX4 stays disarmed
