@@ -80,12 +80,16 @@ FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
 #: Two lanes (``NESO_TEST_LANES=2``): PX4's flights one after another on one worker, with no other flight beside them
 #: (each two-lane run measured with another flight beside PX4 failed: PX4's clock fell behind, tests/README.md) while
-#: the other worker computes; once PX4's are done, the other flights two at a time (each file whole on a worker), the
-#: computing tiers after them (:func:`next_unit`).
+#: the other worker computes; then NatNet's the same way; then the other flights two at a time (each file whole on a
+#: worker), the computing tiers after them (:func:`next_unit`).
 PX4_LANE = "px4 flights"
 #: Two lanes: the flights that stream NatNet, one after another (Motive's data port is fixed, 1511 multicast on
-#: loopback as a real Motive's: sim/natnet_server.py; two such flights at once would hear each other's frames).
+#: loopback as a real Motive's: sim/natnet_server.py; two such flights at once would hear each other's frames), with
+#: no other flight beside them either (beside one, at ddf8dcd: a lost body's second measured 1.08 s of the world, a
+#: hover's states 0.3 s apart).
 NATNET_LANE = "natnet flights"
+#: The lanes that fly with nothing but computing beside them, in this order.
+ALONE_LANES = (PX4_LANE, NATNET_LANE)
 ONE_LANE = "flights"  # every flight in one lane (the default: flight_lanes)
 _lanes: dict[str, object] = {}  # the controller's: flight_lanes() of this run
 
@@ -129,20 +133,18 @@ def unit_flies(unit: str) -> bool:
     return unit in (ONE_LANE, PX4_LANE, NATNET_LANE) or flies(unit)
 
 
-def next_unit(waiting: list[str], px4_flying: bool) -> str | None:
+def next_unit(waiting: list[str], alone_flying: bool) -> str | None:
     """Two lanes: the unit a worker with room takes next out of ``waiting`` (in collection order), or None to wait:
-    PX4's lane first; while ``px4_flying`` (PX4's lane waiting or not yet done) only computing units, so that no other
-    flight runs beside PX4's; then flights before computing (the computing tiers, niced, run beside flights; a flight
-    left for last would run alone), NatNet's lane and the browser's first."""
-    if PX4_LANE in waiting:
-        return PX4_LANE
-    # the longest first, so that none is left to fly alone at the end: NatNet's lane (~140 s quiet) and the browser's
-    # files (the dashboard's 115 s)
-    flights = sorted((u for u in waiting if unit_flies(u)), key=lambda u: not (u == NATNET_LANE or u.startswith("browser/")))
+    the :data:`ALONE_LANES` first, one after another; while ``alone_flying`` (one of them waiting to start or not yet
+    done) only computing units, so that no other flight runs beside them; then flights before computing (the
+    computing tiers, niced, run beside flights; a flight left for last would run alone), the browser's first."""
     computing = [u for u in waiting if not unit_flies(u)]
-    if px4_flying:
+    if alone_flying:
         return computing[0] if computing else None
-    return (flights or computing or [None])[0]
+    alone = [lane for lane in ALONE_LANES if lane in waiting]
+    # the longest first, so that none is left to fly alone at the end: the browser's files (the dashboard's 70 s)
+    flights = sorted((u for u in waiting if unit_flies(u)), key=lambda u: not u.startswith("browser/"))
+    return (alone or flights or computing or [None])[0]
 
 
 def pytest_runtest_setup(item):
@@ -213,14 +215,17 @@ def pytest_xdist_make_scheduler(config, log):
 
     class TwoLanes(Groups):
         """:func:`next_unit` decides what a worker takes; a worker with nothing it may take waits, and every worker is
-        offered work again whenever a test ends anywhere (PX4's lane done frees the other)."""
+        offered work again whenever a test ends anywhere (a lane flown alone done frees the other)."""
 
-        def _px4_flying(self) -> bool:
+        def _alone_flying(self) -> bool:
+            """An :data:`ALONE_LANES` lane on a worker and not done (PX4's also while it waits: the first worker
+            free takes it)."""
             return PX4_LANE in self.workqueue or any(
-                not all(work.get(PX4_LANE, {}).values()) for work in self.assigned_work.values() if PX4_LANE in work)
+                not all(work[lane].values()) for work in self.assigned_work.values() for lane in ALONE_LANES
+                if lane in work)
 
         def _assign_work_unit(self, node) -> None:
-            unit = next_unit(list(self.workqueue), self._px4_flying())
+            unit = next_unit(list(self.workqueue), self._alone_flying())
             if unit is None:
                 return
             self.assigned_work.setdefault(node, {})[unit] = work = self.workqueue.pop(unit)
@@ -294,7 +299,8 @@ def pytest_terminal_summary(terminalreporter):
         lane = lane if lane in (ONE_LANE, PX4_LANE, NATNET_LANE, "computing") else "other flights"
         lanes[lane] = lanes.get(lane, 0.0) + seconds
     chosen = (f"{_lanes['lanes']} flying lane(s), {_lanes['why']}: " + ("a lane's files one after another on one worker"
-              if _lanes["lanes"] == 1 else "PX4's alone beside the computing tiers, then the others two at a time")
+              if _lanes["lanes"] == 1 else "PX4's, then NatNet's, alone beside the computing tiers, then the others two "
+              "at a time")
               if _lanes else "one worker")
     terminalreporter.write_line(f"lanes ({chosen}), test-seconds: " +
                                 ", ".join(f"{lane} {s:.1f} s" for lane, s in lanes.items()))
