@@ -133,13 +133,14 @@ def unit_flies(unit: str) -> bool:
     return unit in (ONE_LANE, PX4_LANE, NATNET_LANE) or flies(unit)
 
 
-def next_unit(waiting: list[str], alone_flying: bool) -> str | None:
+def next_unit(waiting: list[str], alone_elsewhere: bool) -> str | None:
     """Two lanes: the unit a worker with room takes next out of ``waiting`` (in collection order), or None to wait:
-    the :data:`ALONE_LANES` first, one after another; while ``alone_flying`` (one of them waiting to start or not yet
-    done) only computing units, so that no other flight runs beside them; then flights before computing (the
-    computing tiers, niced, run beside flights; a flight left for last would run alone), the browser's first."""
+    the :data:`ALONE_LANES` first, in order; while one of them flies on the other worker (``alone_elsewhere``) only
+    computing units, so that no other flight runs beside it (the worker flying it takes the next unit itself: xdist
+    runs a worker's last test only once it has the one after); then flights before computing (the computing tiers,
+    niced, run beside flights; a flight left for last would run alone), the browser's first."""
     computing = [u for u in waiting if not unit_flies(u)]
-    if alone_flying:
+    if alone_elsewhere:
         return computing[0] if computing else None
     alone = [lane for lane in ALONE_LANES if lane in waiting]
     # the longest first, so that none is left to fly alone at the end: the browser's files (the dashboard's 70 s)
@@ -217,15 +218,13 @@ def pytest_xdist_make_scheduler(config, log):
         """:func:`next_unit` decides what a worker takes; a worker with nothing it may take waits, and every worker is
         offered work again whenever a test ends anywhere (a lane flown alone done frees the other)."""
 
-        def _alone_flying(self) -> bool:
-            """An :data:`ALONE_LANES` lane on a worker and not done (PX4's also while it waits: the first worker
-            free takes it)."""
-            return PX4_LANE in self.workqueue or any(
-                not all(work[lane].values()) for work in self.assigned_work.values() for lane in ALONE_LANES
-                if lane in work)
+        def _alone_elsewhere(self, node) -> bool:
+            """An :data:`ALONE_LANES` lane on another worker than ``node``, not done."""
+            return any(not all(work[lane].values()) for other, work in self.assigned_work.items() if other is not node
+                       for lane in ALONE_LANES if lane in work)
 
         def _assign_work_unit(self, node) -> None:
-            unit = next_unit(list(self.workqueue), self._alone_flying())
+            unit = next_unit(list(self.workqueue), self._alone_elsewhere(node))
             if unit is None:
                 return
             self.assigned_work.setdefault(node, {})[unit] = work = self.workqueue.pop(unit)

@@ -45,13 +45,14 @@ def test_the_flying_tiers_files_fly_in_their_lane_unless_marked_offline():
 
 def test_two_lanes_fly_px4_then_natnet_alone_then_the_other_flights_before_computing():
     """What a worker takes next with two lanes (conftest.next_unit): PX4's lane first, then NatNet's; while one of
-    them flies, computing only, or nothing (wait); after them the flights, the browser's first, then computing."""
+    them flies on the other worker, computing only, or nothing (wait); after them the flights, the browser's first,
+    then computing."""
     flight, browser, computing = "process/test_live_flight.py", "browser/test_dashboard.py", "unit/test_mission.py"
-    assert next_unit([flight, NATNET_LANE, PX4_LANE, computing], alone_flying=False) == PX4_LANE
-    assert next_unit([flight, NATNET_LANE, browser, computing], alone_flying=True) == computing
-    assert next_unit([flight, NATNET_LANE, browser], alone_flying=True) is None
-    assert next_unit([flight, browser, NATNET_LANE, computing], alone_flying=False) == NATNET_LANE
-    assert next_unit([flight, browser, computing], alone_flying=False) == browser
-    assert next_unit([computing, flight], alone_flying=False) == flight
-    assert next_unit([computing], alone_flying=False) == computing
-    assert next_unit([], alone_flying=False) is None
+    assert next_unit([flight, NATNET_LANE, PX4_LANE, computing], alone_elsewhere=False) == PX4_LANE
+    assert next_unit([flight, NATNET_LANE, browser, computing], alone_elsewhere=True) == computing
+    assert next_unit([flight, NATNET_LANE, browser], alone_elsewhere=True) is None
+    assert next_unit([flight, browser, NATNET_LANE, computing], alone_elsewhere=False) == NATNET_LANE
+    assert next_unit([flight, browser, computing], alone_elsewhere=False) == browser
+    assert next_unit([computing, flight], alone_elsewhere=False) == flight
+    assert next_unit([computing], alone_elsewhere=False) == computing
+    assert next_unit([], alone_elsewhere=False) is None
