@@ -45,10 +45,10 @@ demo: setup
 demo-tdr: setup
 	$(VENV)/bin/neso demo tdr --workdir out/demo-tdr --json out/demo-tdr/report.json
 
-# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) workers: one flies the real-time
-# tiers one file after another, the other computes (unit, sim, bus, lockstep and offline files) at nice 10 beside it
-# (NESO_TEST_LANES=2: PX4's flights alone, then the others two at a time, not yet green; tests/README.md); the time per
-# tier and the slowest tests at the end.
+# Every tier (unit, sim, bus, process, browser, px4; tests/README.md) on $(WORKERS) workers: on a quiet machine two
+# flying lanes (PX4's flights, then NatNet's, alone beside the computing; then the others two at a time), with a core
+# busy one (every flight one after another beside the computing at nice 10); NESO_TEST_LANES=1 or 2 decides instead;
+# the time per tier and the slowest tests at the end.
 WORKERS ?= 2
 test: setup
 	$(PY) -m pytest -n $(WORKERS) --durations=20

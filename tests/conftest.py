@@ -12,6 +12,7 @@ import re
 import resource
 import subprocess
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -46,19 +47,38 @@ def pytest_configure(config):
             _lanes.update(flight_lanes())
 
 
-def flight_lanes() -> dict[str, object]:
-    """How many flying lanes this run has: one (every flight one after another) unless ``NESO_TEST_LANES=2`` asks for
-    two (:func:`next_unit`), which needs a worker to lower its nice again after computing (root's CAP_SYS_NICE).
-    Returns ``lanes`` and why."""
-    asked = os.environ.get("NESO_TEST_LANES", "1")
-    if asked not in ("1", "2"):
+#: Two flying lanes only on a machine this idle when the run starts (``NESO_TEST_LANES`` unset): at most this many
+#: cores busy with anything else, as make's ``--load-average`` starts no second job on a busy machine
+QUIET_BUSY_CORES = 0.5
+
+
+def flight_lanes(sample_s: float = 1.0) -> dict[str, object]:
+    """How many flying lanes this run has, and why: ``NESO_TEST_LANES=1`` or ``2`` as asked; unset, two if the
+    machine is quiet (at most :data:`QUIET_BUSY_CORES` busy over ``sample_s`` at the start, every process on it) and a
+    worker can lower its nice again after computing (root's CAP_SYS_NICE), else one. Two real-time flights side by
+    side on a machine whose other core is busy fail their wall-clock claims (tests/README.md, Workers)."""
+    asked = os.environ.get("NESO_TEST_LANES", "")
+    if asked not in ("", "1", "2"):
         raise pytest.UsageError(f"NESO_TEST_LANES={asked}: 1 or 2")
-    why = f"NESO_TEST_LANES={asked}" if "NESO_TEST_LANES" in os.environ else "the default"
-    if asked == "2" and subprocess.run([sys.executable, "-c", "import os; os.nice(1); os.setpriority(os.PRIO_PROCESS, 0, 0)"],
-                                       capture_output=True).returncode != 0:
-        raise pytest.UsageError("NESO_TEST_LANES=2: a worker that computed must fly at nice 0 again, which needs root "
-                                "(CAP_SYS_NICE); run with one lane")
-    return {"lanes": int(asked), "why": why}
+    if asked == "1":
+        return {"lanes": 1, "why": "NESO_TEST_LANES=1"}
+    renices = subprocess.run([sys.executable, "-c", "import os; os.nice(1); os.setpriority(os.PRIO_PROCESS, 0, 0)"],
+                             capture_output=True).returncode == 0
+    if asked == "2":
+        if not renices:
+            raise pytest.UsageError("NESO_TEST_LANES=2: a worker that computed must fly at nice 0 again, which needs "
+                                    "root (CAP_SYS_NICE); run with one lane")
+        return {"lanes": 2, "why": "NESO_TEST_LANES=2"}
+    if not renices:
+        return {"lanes": 1, "why": "a worker cannot lower its nice again (not root)"}
+    before, started = machine_cpu_s(), time.monotonic()
+    time.sleep(sample_s)
+    after, elapsed_s = machine_cpu_s(), time.monotonic() - started
+    busy_cores = sum(after[k] - before[k] for k in after if k != "idle") / elapsed_s
+    quiet = busy_cores <= QUIET_BUSY_CORES
+    return {"lanes": 2 if quiet else 1,
+            "why": f"{busy_cores:.1f} cores busy at the start ({'at most' if quiet else 'more than'} "
+                   f"{QUIET_BUSY_CORES:g})"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by marker

@@ -1,12 +1,18 @@
 """The test suite's own rules (tests/README.md): every test file in a tier folder, and no test module
 importing another (shared builders live in tests/helpers.py, tests/busutil.py, tests/browser/chromium.py), and
-the files of the flying tiers on one worker unless marked ``offline``."""
+the files of the flying tiers on one worker unless marked ``offline``; how many flying lanes a run has."""
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
+import time
 from pathlib import Path
 
-from tests.conftest import FLIGHT_TIERS, OFFLINE_MARK, NATNET_LANE, ONE_LANE, PX4_LANE, TIERS, next_unit, unit_flies, worker_group
+import pytest
+
+from tests.conftest import (FLIGHT_TIERS, OFFLINE_MARK, NATNET_LANE, ONE_LANE, PX4_LANE, TIERS, flight_lanes, next_unit,
+                            unit_flies, worker_group)
 
 TESTS = Path(__file__).resolve().parents[1]
 
@@ -56,3 +62,22 @@ def test_two_lanes_fly_px4_then_natnet_alone_then_the_other_flights_before_compu
     assert next_unit([computing, flight], alone_elsewhere=False) == flight
     assert next_unit([computing], alone_elsewhere=False) == computing
     assert next_unit([], alone_elsewhere=False) is None
+
+
+def test_a_machine_with_a_core_busy_flies_one_lane_and_the_lanes_asked_are_flown(monkeypatch):
+    """conftest.flight_lanes: unset, two flying lanes only on a quiet machine; a core kept busy by another process
+    (as in issue 31's loaded runs) makes it one. ``NESO_TEST_LANES`` decides when set, and only 1 or 2."""
+    monkeypatch.delenv("NESO_TEST_LANES", raising=False)
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)  # its interpreter started and spinning
+        chosen = flight_lanes(sample_s=1.0)
+    finally:
+        busy.kill()
+        busy.wait()
+    assert chosen["lanes"] == 1, chosen
+    monkeypatch.setenv("NESO_TEST_LANES", "1")
+    assert flight_lanes()["lanes"] == 1
+    monkeypatch.setenv("NESO_TEST_LANES", "3")
+    with pytest.raises(pytest.UsageError, match="NESO_TEST_LANES=3: 1 or 2"):
+        flight_lanes()
