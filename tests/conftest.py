@@ -95,13 +95,14 @@ def pytest_collection_modifyitems(config, items):
 ORDER = ("px4", "process", "browser", "sim", "bus", "unit")
 #: The tiers that fly in real time. With workers their files run in one lane (or two: :func:`flight_lanes`), a lane's
 #: files one after another on one worker; a worker that computes runs at nice :data:`COMPUTE_NICE`. What each
-#: schedule measured (one lane green; every two-lane schedule tried had failures) is in tests/README.md, Workers.
+#: schedule measured (one lane green with a core busy; two lanes green on a quiet machine since PX4's and NatNet's
+#: fly alone; every other two-lane schedule tried had failures) is in tests/README.md, Workers.
 FLIGHT_TIERS = ("px4", "browser", "process")
 COMPUTE_NICE = 10
-#: Two lanes (``NESO_TEST_LANES=2``): PX4's flights one after another on one worker, with no other flight beside them
-#: (each two-lane run measured with another flight beside PX4 failed: PX4's clock fell behind, tests/README.md) while
-#: the other worker computes; then NatNet's the same way; then the other flights two at a time (each file whole on a
-#: worker), the computing tiers after them (:func:`next_unit`).
+#: Two lanes (a quiet machine, or ``NESO_TEST_LANES=2``: :func:`flight_lanes`): PX4's flights one after another on
+#: one worker, with no other flight beside them (each two-lane run measured with another flight beside PX4 failed:
+#: PX4's clock fell behind, tests/README.md) while the other worker computes; then NatNet's the same way; then the
+#: other flights two at a time (each file whole on a worker), the computing tiers after them (:func:`next_unit`).
 PX4_LANE = "px4 flights"
 #: Two lanes: the flights that stream NatNet, one after another (Motive's data port is fixed, 1511 multicast on
 #: loopback as a real Motive's: sim/natnet_server.py; two such flights at once would hear each other's frames), with
@@ -110,7 +111,7 @@ PX4_LANE = "px4 flights"
 NATNET_LANE = "natnet flights"
 #: The lanes that fly with nothing but computing beside them, in this order.
 ALONE_LANES = (PX4_LANE, NATNET_LANE)
-ONE_LANE = "flights"  # every flight in one lane (the default: flight_lanes)
+ONE_LANE = "flights"  # every flight in one lane (a busy machine, or NESO_TEST_LANES=1: flight_lanes)
 _lanes: dict[str, object] = {}  # the controller's: flight_lanes() of this run
 
 

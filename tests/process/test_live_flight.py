@@ -100,9 +100,14 @@ def test_live_pathway_and_bound_changes_take_effect_within_one_period_bumplessly
     for pathway, bound in (("eso", _bound("base")), ("neural_eso", half)):
         before = flight.latest_seq()
         reply = set_params(flight.s, KEYS, "estimator", {"pathway": pathway, "lipschitz_bound": bound})
-        acked = flight.latest_seq()
+        acked_s = time.monotonic()
         assert reply.ok, reply.error
         first = flight.probe.wait_for("estimate", lambda m: m.pathway == pathway and m.seq > before, 2.0)
+        # the newest state the source had published when the ack came, by the source's own stamps (the machine's
+        # monotonic clock): not the newest this test had received by then, which lags a loaded test process (sample
+        # 111 when the change took effect at 119, loaded run 21 at 9a6065f)
+        flight.probe.wait_for("state", lambda m: m.stamp_s > acked_s, 2.0)
+        acked = max(m.seq for m in flight.probe.get("state") if m.stamp_s <= acked_s)
         assert first.seq <= acked + 2, f"took effect at sample {first.seq}, ack after {acked}"
         time.sleep(0.5)
         sps = sorted((m for m in flight.probe.get("setpoint") if first.seq - 10 <= m.seq <= first.seq + 10),

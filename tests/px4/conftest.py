@@ -112,8 +112,8 @@ REARM_WAIT_S = 20.0
 
 
 def arm_refusal(f: Px4Flight, timeout_s: float) -> str:
-    """"" once the gateway's preflight verdict on ``f`` says GO (PX4's own pre-arm checks pass) within ``timeout_s``,
-    else the last verdict's table."""
+    """Empty once the gateway's preflight verdict on ``f`` says GO (PX4's own pre-arm checks pass) within
+    ``timeout_s``, else the last verdict's table."""
     deadline, table = time.monotonic() + timeout_s, ""
     while time.monotonic() < deadline:
         reply = f.cmd("px4_gateway", "preflight")
