@@ -111,13 +111,7 @@ def test_the_controllers_landing_and_px4s_land_detector_disarms(flight):
     steps to the hover point; a land commanded 1.2 s after it (seen once, with one core busy), the vehicle 0.5 m
     off and at 1 m/s at 0.25 m, met the floor moving: a crash, PX4's failure detector ("Attitude failure (roll)")
     and no disarm."""
-    def settled():
-        ref = {m.seq: m for m in flight.probe.get("reference")[-50:]}
-        last = [m for m in flight.probe.get("truth")[-50:] if m.seq in ref]
-        return len(last) >= 25 and all(np.linalg.norm(np.subtract(m.pos_enu_m, ref[m.seq].pos_enu_m)) < 0.1 and
-                                       np.linalg.norm(m.vel_enu_mps) < 0.2 and ref[m.seq].segment == "hover"
-                                       for m in last)
-    wait_for("a settled hover (within 10 cm, under 0.2 m/s for 0.5 s)", settled, 30)
+    wait_for("a settled hover (within 10 cm, under 0.2 m/s for 0.5 s)", flight.hover_settled, 30)
     n0, asked = len(flight.output), time.monotonic()
     operator(flight, "controller", "land")
     try:
