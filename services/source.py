@@ -2,8 +2,9 @@
 :class:`flight.source.MocapSource` (what each does is documented in :mod:`flight.source`); the motion-capture
 paths are in :mod:`services.mocap_source`.
 
-Real time: one sample every period on the wall clock, the newest setpoint acts; lockstep: sample k+1
-once setpoint k has arrived (``lockstep_pace``: and not sooner than period / pace after sample k). Command
+Real time: one sample every period on the wall clock, the newest setpoint acts; the clock starts once the
+controller has answered sample 0 (re-sent every ``first_answer_resend_s``, at most ``first_answer_wait_s``); lockstep:
+sample k+1 once setpoint k has arrived (``lockstep_pace``: and not sooner than period / pace after sample k). Command
 ``scenario`` restarts the world as a new flight (lockstep too: its sample 0 waits for its setpoint like any other).
 """
 from __future__ import annotations
@@ -128,7 +129,9 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
         return True, f"world restarts with {wanted} at the next period (a new flight from sample 0)"
 
     node.on_command(on_command)
-    wait_for_loop(node, config.wait_for, required=config.lockstep)
+    loop_alive = wait_for_loop(node, config.wait_for, required=config.lockstep)
+    # a PX4 world runs on PX4's clock; a loop without a controller sends no setpoint to wait for
+    first_answer = not config.lockstep and world is None and loop_alive and "controller" in config.wait_for
     n_total = int(round(config.duration_s * config.rate_hz)) if config.duration_s > 0 else None
     period = 1.0 / config.rate_hz
     if config.lockstep:  # a paced lockstep flight steps at most every period / pace of the wall clock
@@ -151,6 +154,9 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
                     node.event("info", f"the world's motion capture sees the vehicle again at t={truth.t_s:.2f} s "
                                        f"({state.seq - 1 - last_state[0].seq} samples without a state)")
                 _publish_state(node, config, state, put_state, last_state, watch, arrived, core)
+                if first_answer and state.seq == 0:
+                    _await_first_answer(node, config, state, put_state, arrived, core)
+                    next_tick = time.monotonic()  # the world's clock starts at the answer
             else:  # the world's motion capture does not see it (command lose_tracking): no state
                 node.stats.count("untracked_samples")
                 if last_state and last_state[0].seq == state.seq - 1:
@@ -224,12 +230,33 @@ def _publish_state(node, config: SourceConfig, state: StateMsg, put_state, last_
                 put_state(state)
 
 
-def wait_for_loop(node, names: tuple[str, ...], *, required: bool, timeout_s: float | None = None) -> None:
+def _await_first_answer(node, config: SourceConfig, state: StateMsg, put_state, arrived: threading.Condition,
+                        core: SimSource) -> None:
+    """Real time, under the node lock: until sample 0's setpoint has come, re-sending it, at most
+    ``first_answer_wait_s``. Without it, a first state the loop got late or not at all (a new route on the bus, a busy
+    machine) went unanswered, and a controller whose first state was sample 1 took the flight as one it joined."""
+    deadline = time.monotonic() + config.first_answer_wait_s
+    sent = 1
+    while core.setpoint_seq != state.seq and not node.stopping:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            node.event("warning", f"no setpoint for sample 0 within {config.first_answer_wait_s:g} s (sent {sent} "
+                                  "times): the world's clock starts anyway")
+            return
+        if not arrived.wait(min(config.first_answer_resend_s, left)) and core.setpoint_seq != state.seq \
+                and time.monotonic() < deadline:
+            put_state(state)
+            sent += 1
+    if sent > 1:
+        node.log(f"sample 0 answered after it was sent {sent} times")
+
+
+def wait_for_loop(node, names: tuple[str, ...], *, required: bool, timeout_s: float | None = None) -> bool:
     """Until every service in ``names`` is alive on the bus, before the world's first sample: a world that started
     before its loop flew unanswered until the controller came up, which then took the flight as one it joined and held
     the vehicle where it had fallen to (6 cm below its hover, once the source started faster than the controller).
     ``required`` (lockstep): one still missing after ``timeout_s`` (default 60 s) is an error; in real time the world
-    starts anyway after it (default 30 s), saying which are missing."""
+    starts anyway after it (default 30 s), saying which are missing. True: every one is alive."""
     timeout_s = timeout_s if timeout_s is not None else 60.0 if required else 30.0
     deadline = time.monotonic() + timeout_s
     missing = list(names)
@@ -241,9 +268,10 @@ def wait_for_loop(node, names: tuple[str, ...], *, required: bool, timeout_s: fl
             if required:
                 raise TimeoutError(f"lockstep: {missing} not alive after {timeout_s:.0f} s")
             node.event("warning", f"{missing} not alive after {timeout_s:.0f} s: the world starts without them")
-            return
+            return False
         node.wait(0.05)
     node.log(f"{'lockstep' if required else 'real time'}: {list(names)} alive, starting")
+    return not missing
 
 
 def natnet_refusal(config: SourceConfig) -> str:
