@@ -109,6 +109,7 @@ class SourceConfig:
     lockstep_resend_s: float = 1.0
     first_answer_wait_s: float = 2.0  # real time: the world's clock starts once sample 0 is answered, or after this
     first_answer_resend_s: float = 0.1  # ... re-sending sample 0 this often until then
+    stall_report_s: float = 0.5  # real time: a loop that stood still this long is reported, with where it stood
     lockstep_pace: float = option(0.0, help="lockstep: at most this multiple of real time (0: as fast as the services "
                                             "answer; a paced flight leaves the machine's CPU to the rest)")
     mocap: MocapConfig = option(default_factory=MocapConfig, nested=True)

@@ -20,6 +20,7 @@ from flight.deadline import DeadlineWatch
 from flight.source import SimSource, SourceConfig, frame_matrix
 from runtime.options import add_options, config_from_options
 from runtime.schema import SetpointMsg, StateMsg
+from runtime.stall import StallWatch
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -137,7 +138,13 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
     if config.lockstep:  # a paced lockstep flight steps at most every period / pace of the wall clock
         period = period / config.lockstep_pace if config.lockstep_pace > 0 else 0.0
     next_tick = time.monotonic()
+    stall = None if config.lockstep else StallWatch(config.stall_report_s)
     while not node.stopping and (n_total is None or core.seq + 1 < n_total):
+        stood = stall.beat() if stall is not None else None
+        if stood is not None:
+            node.event("warning", f"the world stood still {stood[0]:.2f} s before sample {core.seq + 1} "
+                                  f"(t={core.sim.t_s:.2f} s, load {os.getloadavg()[0]:.2f} on {os.cpu_count()} "
+                                  f"cores): its loop was in {stood[1]}")
         with node.lock:
             if next_scenario:
                 core = SimSource(replace(core.config, scenario=next_scenario.pop()), clock=time.monotonic)
@@ -157,6 +164,8 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
                 if first_answer and state.seq == 0:
                     _await_first_answer(node, config, state, put_state, arrived, core)
                     next_tick = time.monotonic()  # the world's clock starts at the answer
+                    if stall is not None:
+                        stall.beat()  # that wait is not a stall
             else:  # the world's motion capture does not see it (command lose_tracking): no state
                 node.stats.count("untracked_samples")
                 if last_state and last_state[0].seq == state.seq - 1:
@@ -171,6 +180,8 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
                 node.wait(delay)
             elif delay < -period:
                 next_tick = time.monotonic()  # fell behind by more than a period: re-anchor
+    if stall is not None:
+        stall.close()
     node.log(f"done: {core.seq + 1} samples, t={core.sim.t_s:.2f} s, deadline misses {misses[0]}")
     node.event("info", f"flight finished after {core.seq + 1} samples ({core.sim.t_s:.2f} s)")
 

@@ -6,6 +6,8 @@ has answered sample 0: a first state the loop never got is sent again, and a loo
 world for longer than ``first_answer_wait_s``."""
 from __future__ import annotations
 
+import os
+import signal
 import threading
 import time
 
@@ -92,3 +94,29 @@ def test_a_controller_that_never_answers_holds_the_world_at_sample_0_no_longer_t
     assert f"no setpoint for sample 0 within {wait_s:g} s" in said and "the world's clock starts anyway" in said, \
         said[-2000:]
     assert [m.seq for m in states[first_1:]] == list(range(1, len(states) - first_1 + 1)), "then every sample once"
+
+
+def test_a_world_that_stood_still_says_so_and_its_time_goes_on_by_one_period():
+    """A source process stopped for a second (SIGSTOP: no CPU at all, as the 1.5 s that PX4's simulator link
+    timed out on in one run) says how long its world stood still and where; its world's time does not jump."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with hub(endpoint), session(peer(endpoint)) as s:
+        probe = Probe(s, topics=("state",))
+        source = neso("run", "source", "--vehicle", "uav1", "--connect", endpoint, "--wait-for", "")
+        try:
+            before = probe.wait_for("state", lambda m: m.seq >= 10, 30.0)
+            os.kill(source.pid, signal.SIGSTOP)
+            time.sleep(1.0)
+            os.kill(source.pid, signal.SIGCONT)
+            probe.wait_for("state", lambda m: m.seq >= before.seq + 60, 30.0)
+        finally:
+            said = stop(source)
+    states = probe.get("state")
+    gaps = [(a, b) for a, b in zip(states, states[1:]) if b.stamp_s - a.stamp_s > 0.9]
+    assert len(gaps) == 1, [(a.seq, b.seq, b.stamp_s - a.stamp_s) for a, b in gaps]
+    a, b = gaps[0]
+    assert b.seq == a.seq + 1 and abs(b.t_s - a.t_s - 1.0 / SourceConfig().rate_hz) < 1e-9, (a, b)
+    stood = [line for line in said.splitlines() if "the world stood still" in line]
+    assert len(stood) == 1 and f"before sample {b.seq} " in stood[0] and "the process had no CPU" in stood[0], \
+        said[-2000:]
+    assert float(stood[0].split("stood still ")[1].split(" s")[0]) >= 1.0, stood[0]

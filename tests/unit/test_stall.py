@@ -1,0 +1,37 @@
+"""runtime/stall.py: a loop that stood still is reported with where it stood, or that nothing ran."""
+from __future__ import annotations
+
+import time
+
+from runtime.stall import StallWatch
+
+
+def _stuck_until_noted(watch: StallWatch) -> None:
+    """Stands still (as a loop blocked on a lock or a socket would) until the watch has noted where."""
+    deadline = time.monotonic() + 30.0
+    while watch.noted is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_a_loop_that_stood_still_is_reported_once_with_the_function_it_stood_in():
+    started = time.monotonic()
+    watch = StallWatch(0.05)
+    try:
+        _stuck_until_noted(watch)
+        stood = watch.beat()
+        assert stood is not None and stood[0] >= 0.05 and stood[0] <= time.monotonic() - started, stood
+        assert stood[1].startswith("_stuck_until_noted (test_stall.py:"), stood[1]
+        assert "test_a_loop_that_stood_still" in stood[1], "the frames that called it follow"
+        assert watch.noted is None, "reported once"
+    finally:
+        watch.close()
+
+
+def test_a_beat_within_the_threshold_is_no_stall_and_a_process_without_cpu_is_said_to_be_one():
+    now = [100.0]
+    watch = StallWatch(0.5, clock=lambda: now[0])
+    watch.close()  # the watch beside it does not run: as in a process that got no CPU at all
+    now[0] += 0.4
+    assert watch.beat() is None
+    now[0] += 2.0
+    assert watch.beat() == (2.0, "unknown: the watch beside it did not run either (the process had no CPU)")
