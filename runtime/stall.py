@@ -1,5 +1,6 @@
 """A loop that stood still, and where it stood: a thread beside the loop notes the loop thread's innermost frames
-once the loop has not beaten for ``threshold_s``; the loop's next beat reports how long it stood and where.
+once the loop has not beaten for ``threshold_s``; the loop's next beat reports how long it stood and where, or that the watch itself was held as long (the whole
+process had no CPU: stopped, or starved by the machine).
 
 A world that stops for a second is a fault a lab must hear about (PX4's simulator link times out, the gateway
 commands hold), and the frames say whether the loop waited on something (a lock, a socket, a write) or the
@@ -45,8 +46,15 @@ class StallWatch:
         self._stop.set()
 
     def _watch(self) -> None:
-        while not self._stop.wait(self.threshold_s / 4):
-            if self._where is None and self.clock() - self._beat_s > self.threshold_s:
+        every_s = self.threshold_s / 4
+        woke_s = self.clock()
+        while not self._stop.wait(every_s):
+            now = self.clock()
+            late_s, woke_s = now - woke_s - every_s, now
+            if late_s > self.threshold_s / 2:  # this thread had no CPU either: where the loop is now says nothing
+                if self._where is None:
+                    self._where = f"unknown: the process had no CPU (the watch beside it woke {late_s:.2f} s late too)"
+            elif self._where is None and now - self._beat_s > self.threshold_s:
                 frame = sys._current_frames().get(self._thread_id)
                 if frame is not None:
                     stack = traceback.extract_stack(frame)[-self.frames:]
