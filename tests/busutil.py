@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from contextlib import contextmanager
 from typing import Callable
 
@@ -52,6 +53,21 @@ def session(config: BusConfig):
         yield s
     finally:
         s.close()
+
+
+@contextmanager
+def timed_step(what: str, warn_after_s: float = 5.0):
+    """A teardown step that took longer than ``warn_after_s`` becomes a warning in the run's summary, with its
+    seconds and the machine's load: a passing test's output is not shown, and one teardown once took 71 s of a
+    loaded run without saying where (tests/browser/test_dashboard_secure.py, loaded run 35)."""
+    started = time.monotonic()
+    try:
+        yield
+    finally:
+        took_s = time.monotonic() - started
+        if took_s > warn_after_s:
+            warnings.warn(f"{what} took {took_s:.1f} s (load {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores)",
+                          stacklevel=3)
 
 
 @contextmanager
@@ -104,13 +120,16 @@ class NesoUp:
 
         try:
             self.probe.close()
-            self._session_cm.__exit__(None, None, None)
-            if kill:
-                if self.proc.poll() is None:
-                    os.killpg(self.proc.pid, signal.SIGKILL)
-            else:
-                interrupt(self.proc)
-            self._pump_thread.join(5.0)
+            with timed_step("closing the test's Zenoh session"):
+                self._session_cm.__exit__(None, None, None)
+            with timed_step(f"{'killing' if kill else 'Ctrl-C of'} neso up until it ended"):
+                if kill:
+                    if self.proc.poll() is None:
+                        os.killpg(self.proc.pid, signal.SIGKILL)
+                else:
+                    interrupt(self.proc)
+            with timed_step("reading the rest of neso up's output"):
+                self._pump_thread.join(5.0)
             return "".join(self.output)
         finally:
             if self.workdir is not None:

@@ -10,6 +10,8 @@ import time
 
 import pytest
 
+from tests.busutil import timed_step
+
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -183,14 +185,20 @@ def dashboard_page(url: str):
     """Chromium (kept at nice 19 while inside) with one page on the dashboard at ``url``: (browser, page)."""
     from playwright.sync_api import sync_playwright
 
-    with sync_playwright() as pw:
+    driver = sync_playwright()
+    pw = driver.__enter__()
+    try:
         browser = launch(pw)
         try:
             page = open_dashboard(browser, url)
             with KeptReniced():
                 yield browser, page
         finally:
-            browser.close()
+            with timed_step("closing Chromium"):
+                browser.close()
+    finally:
+        with timed_step("stopping Playwright's driver"):
+            driver.__exit__(None, None, None)
 
 
 def text(page) -> str:
