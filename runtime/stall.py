@@ -1,6 +1,6 @@
 """A loop that stood still, and where it stood: a thread beside the loop notes the loop thread's innermost frames
-once the loop has not beaten for ``threshold_s``; the loop's next beat reports how long it stood and where, or that the watch itself was held as long (the whole
-process had no CPU: stopped, or starved by the machine).
+once the loop has not beaten for ``threshold_s``; the loop's next beat reports how long it stood and where, or that
+the watch itself was held as long (the whole process had no CPU: stopped, or starved by the machine).
 
 A world that stops for a second is a fault a lab must hear about (PX4's simulator link times out, the gateway
 commands hold), and the frames say whether the loop waited on something (a lock, a socket, a write) or the
