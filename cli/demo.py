@@ -29,7 +29,7 @@ not offered, the second run flies the same network again: the pairing's own resi
 
 With ``--lockstep-pace P`` the built-in world flies in lockstep, at most P× real time: every state is answered with a
 setpoint, so deadlines are not measured (a miss there is the controller's local ESO flying a sample the estimator
-left unanswered for 2 s of the wall clock; the PX4 loop, in real time, is where deadlines are), the restarts and the
+left unanswered for ``ControllerConfig.lockstep_stale_s`` of the wall clock; the PX4 loop, in real time, is where deadlines are), the restarts and the
 paired starts are the same in the world's time, and the loop takes a fraction of the wall clock. With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an
 operator does, and since PX4 would not follow a restarted world the two lemniscates are not paired (one world flies
 on; the report says so).
@@ -53,8 +53,11 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from flight.controller import ControllerConfig
 from neso.control import ControlConfig
 from neso.trajectories import Lemniscate
+
+LOCKSTEP_STALE_S = ControllerConfig().lockstep_stale_s  # the controller's wait before a lockstep miss
 
 RAMP_S = Lemniscate().ramp_s  # the cycles start after it
 SCENARIO = "lemniscate_near_ground"
@@ -150,7 +153,8 @@ class TdrReport:
             f"({self.cycles_after_samples} samples) -> change {-100 * self.improvement:+.0f} %",
             f"lockstep at most {self.lockstep_pace:g}× real time, no deadline measured: {self.states} states, "
             f"{self.states_without_setpoint} without a setpoint, {self.missed_setpoints} flown on the controller's "
-            f"local ESO (the estimator silent for 2 s of the wall clock; by phase {self.missed_by_phase})"
+            f"local ESO (the estimator silent for {LOCKSTEP_STALE_S:g} s of the wall clock; by phase "
+            f"{self.missed_by_phase})"
             if self.lockstep_pace > 0 else
             f"missed deadlines: {self.missed_setpoints} of {self.states} states ({self.states_without_setpoint} without "
             f"any setpoint, the rest flown on the controller's local ESO; {self.missed_near_swap} within 0.5 s of the "

@@ -60,3 +60,23 @@ class StallWatch:
                     stack = traceback.extract_stack(frame)[-self.frames:]
                     self._where = " ← ".join(f"{f.name} ({f.filename.rsplit('/', 1)[-1]}:{f.lineno})"
                                              for f in reversed(stack))
+
+
+class LateWake:
+    """A periodic watchdog's guard against blaming others for its own process's lack of CPU: a wake more than
+    ``late_periods`` periods after the one before means the process was held (stopped, or starved by the machine), and
+    what the watchdog waits for may be queued behind it. :meth:`may_judge` says no to that one wake, so the queued
+    callbacks run first, and yes to the next whatever its timing (a process starved for good still judges)."""
+
+    def __init__(self, period_s: float, now_s: float, late_periods: float = 2.0) -> None:
+        self.period_s = period_s
+        self.late_periods = late_periods
+        self._woke_s = now_s
+        self._skipped = False
+
+    def may_judge(self, now_s: float) -> bool:
+        """Called at each wake, with the time (s, the clock ``now_s`` was of) it woke."""
+        late = now_s - self._woke_s > self.late_periods * self.period_s
+        self._woke_s = now_s
+        self._skipped = late and not self._skipped
+        return not self._skipped

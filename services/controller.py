@@ -3,7 +3,9 @@
 
 State and estimate samples go to the core with their arrival time; the (setpoint, reference) pairs it
 returns are published; a watchdog thread asks it every third of ``stale_timeout_s`` whether the newest
-sample waited too long (the local ESO then flies). Gain changes take effect at the next sample.
+sample waited too long (the local ESO then flies), except at a wake that came over two of its periods late: the
+process had no CPU, and an estimate that came meanwhile is answered first (one wake only). Gain changes take effect
+at the next sample.
 """
 from __future__ import annotations
 
@@ -26,12 +28,13 @@ def config_from_args(args) -> ControllerConfig:
     dt = config.control.dt_s
     # at high rates a few periods are shorter than one scheduling hiccup of a 2-core VM: floor 20 ms
     lockstep = getattr(args, "lockstep", False)
-    stale = 2.0 if lockstep else max(config.stale_periods * dt, 0.02)
+    stale = config.lockstep_stale_s if lockstep else max(config.stale_periods * dt, 0.02)
     return replace(config, stale_timeout_s=stale, stale_samples=0 if lockstep else max(1, round(stale / dt)))
 
 
 def run(args, bus) -> int:
     from runtime.node import Node, run_node
+    from runtime.stall import LateWake
 
     config = config_from_args(args)
     core = ControllerCore(config, clock=time.monotonic)
@@ -72,7 +75,10 @@ def run(args, bus) -> int:
 
     def watchdog(node: Node) -> None:
         period = max(config.stale_timeout_s / 3.0, 0.001)
+        wakes = LateWake(period, time.monotonic())
         while not node.wait(period):
+            if not wakes.may_judge(time.monotonic()):
+                continue
             with node.lock:
                 now = time.monotonic()
                 publish(core.check_stale(now), now)

@@ -80,8 +80,14 @@ def test_page_loads_and_shows_the_flight(flight):
     t = wait_text(page, r"loop rate\s*\d+\.\d Hz")
     assert "uav1" in t and "pathway" in t and "certificate" in t
     wait_text(page, r"Pose \(t = \d+\.\d\d s")
-    rate = float(re.search(r"loop rate\s*([\d.]+) Hz", text(page)).group(1))
-    assert 35.0 < rate < 65.0, rate  # a 50 Hz loop, on a loaded 2-core machine
+    # the rate is of the last 2 s of setpoint stamps: a moment the machine starved the loop shows lower for 2 s (CI,
+    # a busy machine: 33.4 Hz). The claim, the loop's 50 Hz on the page, is read until 2 s of it ran at its rate:
+    # within ±10 % (before: one reading, anything in 35-65 Hz)
+    rates, deadline = [], time.monotonic() + 10.0
+    while not rates or not 45.0 <= rates[-1] <= 55.0 and time.monotonic() < deadline:
+        time.sleep(0.25 if rates else 0.0)
+        rates.append(float(re.search(r"loop rate\s*([\d.]+) Hz", text(page)).group(1)))
+    assert 45.0 <= rates[-1] <= 55.0, rates
 
 
 def test_the_pages_frames_keep_coming_at_most_one_per_render_period(flight):

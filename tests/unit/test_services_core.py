@@ -82,6 +82,23 @@ def test_estimator_core_applies_pathway_and_bound_at_the_next_sample(choice):
     assert core.on_state(state(1), 0.0) == out, "a re-sent sample gets the same answer"
 
 
+def test_a_new_bound_is_certified_before_the_lock_so_the_check_under_it_solves_nothing(choice):
+    """The node runs ``prepare`` outside its lock and ``check`` under it (runtime.node): the check of a new L_N must
+    find its certificate warm. Before, ``prepare`` warmed only the flying network's, and the check solved the new
+    one's SDPs under the lock (0.35 s idle; a CI run's reply missed its 2 s while the loop waited)."""
+    from neso.certificate import flight_certificate
+
+    core = EstimatorCore(EstimatorConfig(network=BASE), choice.loaded, choice, clock=fixed_clock)
+    ps = ParamSet(estimator_params(core.config, _bound("base")), check=core.check, prepare=core.prepare)
+    change = {"lipschitz_bound": 0.77 * _bound("base")}  # asked by no other test: not in the cache yet
+    before = flight_certificate.cache_info().misses
+    ps.prepare(change)
+    warmed = flight_certificate.cache_info().misses
+    assert warmed > before, "prepare solved the new bound's certificate"
+    assert ps.request(change)[0]
+    assert flight_certificate.cache_info().misses == warmed, "the check under the lock found it warm"
+
+
 def test_lockstep_estimator_waits_for_the_previous_setpoint(choice):
     from runtime.schema import SetpointMsg
 

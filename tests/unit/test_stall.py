@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import time
 
-from runtime.stall import StallWatch
+from runtime.stall import LateWake, StallWatch
 
 
 def _stuck_until_noted(watch: StallWatch) -> None:
@@ -50,3 +50,14 @@ def test_a_watch_that_woke_as_late_as_the_loop_says_the_process_had_no_cpu_not_w
         assert watch.beat() == (2.0, "unknown: the process had no CPU (the watch beside it woke 1.88 s late too)")
     finally:
         watch.close()
+
+
+def test_a_watchdog_that_woke_late_judges_at_its_next_wake_not_this_one():
+    """The controller's watchdog (services/controller.py): a wake over two periods late skips its judgement once,
+    so an estimate queued behind the process's stop is answered before the local ESO is blamed on the estimator."""
+    wakes = LateWake(0.02, now_s=0.0)
+    assert [wakes.may_judge(t) for t in (0.02, 0.04, 0.061)] == [True, True, True], "on time (and a hair late)"
+    assert not wakes.may_judge(3.0), "2.9 s late: the process had no CPU"
+    assert wakes.may_judge(3.02), "the next wake judges"
+    assert [wakes.may_judge(t) for t in (6.0, 9.0, 12.0)] == [False, True, False], \
+        "starved at every wake, it still judges every other one: a dead estimator is still found"
