@@ -62,8 +62,9 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     assert report.f_hat_step_at_swap_mps2 <= report.f_hat_step_max_mps2, report.lines()
     assert report.force_step_at_swap_n <= FORCE_STEP_LIMIT_N + 1e-9
     # lockstep: every state of every phase answered with a setpoint, the swap sample and the 25 around it with the
-    # estimator's f̂. Elsewhere the controller may fly its local ESO where the estimator was silent for its 2 s of the
-    # wall clock (measured: 2 samples while the estimator took the trainer's offer, 2.7 s; in real time that stall is
+    # estimator's f̂. Elsewhere the controller may fly its local ESO where the estimator was silent for its
+    # ControllerConfig.lockstep_stale_s (5 s) of the wall clock (measured with 2 s: 2 samples while the estimator took
+    # the trainer's offer, 2.7 s; CI with a busy machine: one in training, one at the swap; in real time that stall is
     # deadline misses). Deadlines in real time are the PX4 loop's claims (tests/px4/test_px4_tdr.py).
     assert report.lockstep_pace == LOCKSTEP_PACE and report.states > 3000
     # not asserted: every state with a setpoint the test's probe saw (1 of 6465 states during training without one, in
