@@ -13,8 +13,9 @@ import pytest
 
 from cli.paper_px4 import free_px4_instance, release_px4_instance
 from runtime.client import command
-from sim.px4_sitl import missing_px4, px4_home
+from sim.px4_sitl import missing_px4
 from tests.busutil import REPO, NesoUp, free_port, peer, wait_for
+from tests.px4 import px4_env
 
 TOPICS = ("state", "truth", "setpoint", "reference", "telemetry", "recording")
 
@@ -25,8 +26,7 @@ class Px4Flight(NesoUp):
     def __init__(self, tmp, *extra: str):
         endpoint = self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         old = dict(os.environ)
-        # MAVSDK writes its cache under $HOME/.cache/mavsdk: a HOME of the test's own; PX4 stays where make setup put it
-        os.environ.update(HOME=str(tmp), NESO_PX4_HOME=str(px4_home()))
+        os.environ.update(px4_env(tmp))
         self.instance = free_px4_instance()  # held by this test process until close()
         try:
             self.t0 = time.monotonic()

@@ -11,9 +11,9 @@ import subprocess
 import sys
 import time
 
-from sim.px4_sitl import px4_home
 from sim.tuning import TUNED_GAINS
 from tests.busutil import REPO
+from tests.px4 import px4_env
 
 
 def _neso(*args: str, env: dict | None = None, timeout: float = 300.0) -> subprocess.CompletedProcess:
@@ -23,13 +23,14 @@ def _neso(*args: str, env: dict | None = None, timeout: float = 300.0) -> subpro
 
 def test_the_paper_experiments_fly_on_px4_and_the_json_is_real(tmp_path):
     out, details = tmp_path / "paper-px4.json", tmp_path / "details.json"
-    started = time.monotonic()  # MAVSDK caches under $HOME: a HOME of the test's own, PX4 where make setup put it
+    started = time.monotonic()
     # the tuned baseline at the gains the search states (tests/sim/test_tuning.py flies the search itself; PX4 flies
     # only N-ESO here): without them the built-in part searches first (~70 s of this test on a quiet machine)
     tuned = [f"--tuned={k}={g.kp:g},{g.kd:g},{g.omega_o_rps:g}" for k, g in TUNED_GAINS.items()]
     done = _neso("--world", "px4", "--trials", "1", "--epochs", "5", "--recipes", "certified", *tuned,
                  "--px4-experiments", "nominal_landing,lemniscate_near_ground", "--px4-methods", "neural_eso",
-                 "--json", str(out), "--details", str(details), env=dict(os.environ, HOME=str(tmp_path), NESO_PX4_HOME=str(px4_home())))
+                 "--json", str(out), "--details", str(details),
+                 env=dict(os.environ, **px4_env(tmp_path)))
     print(f"\n{done.stdout[-3000:]}\nreduced run: {time.monotonic() - started:.0f} s")
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     res, det = json.loads(out.read_text()), json.loads(details.read_text())
