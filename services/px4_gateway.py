@@ -122,7 +122,11 @@ class GatewayConfig:
     stale_states: int = option(15, unit="samples", help="unanswered states before hold")
     stale_max_s: float = option(1.0, flag="--stale-max", unit="s", help="without setpoints before hold, states or not")
     land_after_s: float = option(3.0, flag="--land-after", unit="s", help="in failsafe hold before land")
-    hold_confirm_s: float = 1.0  # the failsafe's hold commanded and the vehicle still in offboard this long: land
+    # the failsafe's hold commanded and the vehicle still in offboard this long: land. The mode is what MAVSDK reads in
+    # PX4's HEARTBEAT, sent once a second of PX4's clock (slower than the wall's when SITL's world lags): at 1.0 s
+    # a hold PX4 took could still read "offboard" (loaded run 39 at 59f6351: offboard, land, never hold). Two beats
+    # and a half; a vehicle that ignores our hold is covered meanwhile by PX4's own offboard-loss failsafe
+    hold_confirm_s: float = 2.5
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
     # 0.3 s: longer than the gaps a wireless link has in normal use, so one of them is not taken for a lost motion

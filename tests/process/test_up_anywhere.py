@@ -1,17 +1,12 @@
 """`neso up` from a folder outside the checkout flies the network the project ships (a user's own flight
-folder), and a service that refuses its configuration stops the run at once instead of being restarted. Neither is
-about real time: the flight is in lockstep, and the file runs beside the flights (tests/conftest.py)."""
+folder), and a service that refuses its configuration stops the run at once instead of being restarted."""
 from __future__ import annotations
 
 import subprocess
 import sys
 
-import pytest
-
 from flight.estimator import DEFAULT_NETWORK, PROJECT_ROOT
 from tests.busutil import free_port
-
-pytestmark = pytest.mark.offline  # a lockstep flight and a refused start: nothing flies in real time
 
 
 def up(cwd, *args: str) -> subprocess.CompletedProcess:
@@ -21,7 +16,7 @@ def up(cwd, *args: str) -> subprocess.CompletedProcess:
 
 
 def test_up_from_another_folder_flies_the_shipped_network(tmp_path):
-    r = up(tmp_path, "--duration", "3", "--lockstep")
+    r = up(tmp_path, "--duration", "3")
     assert r.returncode == 0, r.stdout[-3000:]
     assert f"[estimator] network {PROJECT_ROOT / DEFAULT_NETWORK}: id base" in r.stdout, r.stdout[-3000:]
     assert "restarting (restart" not in r.stdout and "Traceback" not in r.stdout, r.stdout[-3000:]
