@@ -47,7 +47,7 @@ class StallWatch:
 
     def _watch(self) -> None:
         every_s = self.threshold_s / 4
-        woke_s = self.clock()
+        woke_s = self._beat_s  # from the watch's creation: a thread that starts late was held too (loaded run 42)
         while not self._stop.wait(every_s):
             now = self.clock()
             late_s, woke_s = now - woke_s - every_s, now

@@ -1,6 +1,7 @@
 """runtime/stall.py: a loop that stood still is reported with where it stood, or that nothing ran."""
 from __future__ import annotations
 
+import threading
 import time
 
 from runtime.stall import LateWake, StallWatch
@@ -44,6 +45,31 @@ def test_a_watch_that_woke_as_late_as_the_loop_says_the_process_had_no_cpu_not_w
     watch = StallWatch(0.5, clock=lambda: now[0])
     try:
         now[0] += 2.0  # the watch and the loop both held for 2 s
+        deadline = time.monotonic() + 30.0
+        while watch.noted is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert watch.beat() == (2.0, "unknown: the process had no CPU (the watch beside it woke 1.88 s late too)")
+    finally:
+        watch.close()
+
+
+def test_a_watch_whose_thread_started_only_after_the_hold_still_says_the_process_had_no_cpu(monkeypatch):
+    """The watch's thread may first run after the process was held (loaded run 42: the test above named its own
+    frame): its lateness counts from the watch's creation, not from its thread's first instant."""
+    started, start = threading.Event(), threading.Thread.start
+
+    def start_once_released(thread):
+        run = thread.run
+        thread.run = lambda: (started.wait(), run())
+        start(thread)
+
+    now = [100.0]
+    with monkeypatch.context() as m:
+        m.setattr(threading.Thread, "start", start_once_released)
+        watch = StallWatch(0.5, clock=lambda: now[0])
+    try:
+        now[0] += 2.0  # held before the watch's thread ever ran
+        started.set()
         deadline = time.monotonic() + 30.0
         while watch.noted is None and time.monotonic() < deadline:
             time.sleep(0.01)
