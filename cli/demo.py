@@ -29,10 +29,11 @@ not offered, the second run flies the same network again: the pairing's own resi
 
 With ``--lockstep-pace P`` the built-in world flies in lockstep, at most P× real time: every state is answered with a
 setpoint, so deadlines are not measured (a miss there is the controller's local ESO flying a sample the estimator
-left unanswered for ``ControllerConfig.lockstep_stale_s`` of the wall clock; the PX4 loop, in real time, is where deadlines are), the restarts and the
-paired starts are the same in the world's time, and the loop takes a fraction of the wall clock. With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes off as an
-operator does, and since PX4 would not follow a restarted world the two lemniscates are not paired (one world flies
-on; the report says so).
+left unanswered for ``ControllerConfig.lockstep_stale_s`` of the wall clock; the PX4 loop, in real time, is where
+deadlines are), the restarts and the paired starts are the same in the world's time, and the loop takes a fraction of
+the wall clock. With ``--world px4`` real PX4 SITL flies the world (``neso up --vehicle px4``): the loop first takes
+off as an operator does, and since PX4 would not follow a restarted world the two lemniscates are not paired (one
+world flies on; the report says so).
 
 Reported: the z RMSE of the cycles before and after the swap (truth − reference, the ramps left
 out), missed deadlines (states without a setpoint from the estimator's f̂), the commanded-force
