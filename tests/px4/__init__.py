@@ -1,9 +1,9 @@
 """The PX4 tier: real PX4 v1.16.0 SITL in the loop."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
+from services.certificate_cache import cache_path
 from sim.px4_sitl import px4_home
 
 
@@ -13,7 +13,7 @@ def px4_env(home) -> dict[str, str]:
     machine found before stay known: ``home``/.cache/neso is made a link to where every other test's processes keep
     them (each verified before use, services/certificate_cache.py). Without it they were solved again under the test's
     HOME: test_px4_paper.py's budgets, 12 s of its built-in world's 27 on a quiet machine."""
-    caches = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "neso"
+    caches = cache_path().parent
     caches.mkdir(parents=True, exist_ok=True)
     link = Path(home) / ".cache" / "neso"
     link.parent.mkdir(parents=True, exist_ok=True)
