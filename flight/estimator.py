@@ -398,8 +398,9 @@ class EstimatorCore:
         self._latest_applied = applied
         forget_older(self._applied, sp.seq)
         out = []
-        while self._waiting and self._waiting[0].seq - 1 in self._applied:
-            out += self._process(self._waiting.pop(0), now_s)
+        for waiting in [s for s in self._waiting if s.seq - 1 in self._applied]:
+            if waiting.seq > self._last_seq:  # not passed by a newer one meanwhile
+                out += self._process(waiting, now_s)
         return out
 
     def on_reference(self, ref: ReferenceMsg) -> None:
@@ -442,6 +443,15 @@ class EstimatorCore:
             self.warm_ticks = 0
         else:
             applied = self._applied.get(state.seq - 1) or self._latest_applied or self._hover
+        # a state still waiting for its setpoint is stale once a newer one is answered (the controller flew it on
+        # its own); left waiting, it would hold up every later state that arrives before its own setpoint
+        if state.seq == 0:
+            self._waiting.clear()  # a new flight: what waited was the last one's
+        stale = [s.seq for s in self._waiting if s.seq < state.seq]
+        self._waiting = [s for s in self._waiting if s.seq > state.seq]
+        if stale:
+            self.events.append(("warning", f"lockstep: no setpoint {stale[0] - 1} came for state {stale[0]}; "
+                                           f"the loop moved on without it (at state {state.seq})"))
         self._last_seq = state.seq
         wrong_rate = self.rate_check.observe(state.seq, state.t_s)
         if wrong_rate:
