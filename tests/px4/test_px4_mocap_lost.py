@@ -31,6 +31,18 @@ def lose(flight, seconds: float, then_s: float) -> tuple[float, list[str]]:
     return lost_world_s, flight.output[before:]
 
 
+def recorded_spans(directory) -> dict[str, tuple[float, float]]:
+    """Each recording in ``directory``: the world's time (s) of its first and last state."""
+    from recordings.reader import read_recording
+
+    spans = {}
+    for path in sorted(p for p in directory.glob("*.rrd") if not p.name.startswith(".")):  # not a compaction's scratch
+        t_s = read_recording(path).channel("state").columns.get("t_s")
+        if t_s is not None and len(t_s):
+            spans[path.name] = (float(t_s[0]), float(t_s[-1]))
+    return spans
+
+
 def modes_since(flight, stamp_s: float) -> list[tuple[bool, str]]:
     """(armed, PX4's mode) as the gateway reported them after ``stamp_s``, each change once."""
     modes: list[tuple[bool, str]] = []
@@ -79,9 +91,15 @@ def test_half_a_second_without_motion_capture_is_told_to_px4_and_the_flight_goes
     assert not any(m.crashed for m in truth) and min(pos[:, 2]) > 0.5, "in the air throughout, no crash"
     assert modes == [(True, "offboard")], modes
     assert max(last_2_s) < 0.1, "back at its hover"
-    recording = [m for m in flight.probe.get("recording") if m.stamp_s > truth[0].stamp_s]
-    assert recording and all(m.recording for m in recording) and len({m.flight for m in recording}) == 1, \
-        "one recording, through the loss"
+    # one recording through it all, read back from the recorder's own files (the open one read as a crash would
+    # leave it): one file holds the world's second before the loss to 3 s after it, no file begins in that span.
+    # Before: the recorder's 1 Hz status at the test's probe; quiet run 17 saw none of its ~7 (the recorder's log
+    # shows it recording through the loss; not root-caused, likely the bus dropping the status, a lower priority than
+    # the loop's streams, on its way to a busy test process)
+    spans = recorded_spans(flight.recordings)
+    through = [f for f, (first, last) in spans.items() if first <= lost_world_s - 1.0 and last >= lost_world_s + 3.0]
+    begun = [f for f, (first, _) in spans.items() if lost_world_s - 1.0 < first <= lost_world_s + 3.0]
+    assert len(through) == 1 and not begun, ("one recording, through the loss", lost_world_s, spans)
 
 
 def test_lost_longer_than_the_gateways_second_without_setpoints_px4_holds_then_lands(flight):
