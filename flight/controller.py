@@ -53,11 +53,10 @@ class ControllerConfig:
     sample when this many before it went unanswered (0: by time only). The count acts on the
     sample itself, where the time check waits for the watchdog thread, which a loaded machine
     may wake late. ``lockstep_stale_s``: the same wait in lockstep, where no deadline is flown and
-    the wait only tells a dead estimator from a slow one. Not a cure for the lockstep TDR loop's
-    two silent samples (one near the offer, one at the promote): CI saw them with 2 s, loaded run
-    45 with 5 s, so they are not a starved process but a sample the estimator never answered
-    (cause open, tests/process/test_tdr_loop.py). ``warmup_ticks``: samples a (re)started estimator
-    must have run before its estimates are used again."""
+    the wait only tells a dead estimator from a slow one. A longer one cured nothing: the lockstep TDR
+    loop's pairs of silent samples (CI with 2 s, loaded run 45 with 5 s) were a state whose setpoint
+    never reached the estimator, left at the head of its queue (flight/estimator.py, fixed).
+    ``warmup_ticks``: samples a (re)started estimator must have run before its estimates are used again."""
 
     control: ControlConfig = option(default_factory=ControlConfig, flag="--rate", unit="Hz",
                                     cli=(lambda c: 1.0 / c.dt_s, lambda hz: replace(ControlConfig(), dt_s=1.0 / hz)),
