@@ -221,8 +221,10 @@ class ControllerCore:
 
     # -- samples ------------------------------------------------------------------------
     def on_state(self, state: StateMsg, now_s: float) -> list[tuple[SetpointMsg, ReferenceMsg | None]]:
-        if state.seq == self._last_seq:
-            return self._last_output if self._last_stepped == state.seq else []  # a re-sent sample
+        if state.seq == self._last_seq:  # a re-sent sample (lockstep: the world had no setpoint for it in time)
+            # answered: answer again. Still waiting for its estimate: send the setpoint before it again, which a
+            # lockstep estimator waits for and may have lost (the source's re-send heals a loss on every edge)
+            return self._last_output if self._last_stepped in (state.seq, state.seq - 1) else []
         if 0 < state.seq < self._last_seq:
             return []  # late
         meas = state_measurement(state)

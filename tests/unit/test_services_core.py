@@ -137,6 +137,28 @@ def test_a_lockstep_state_whose_setpoint_never_came_does_not_hold_up_the_states_
 
 
 # -- controller -------------------------------------------------------------------------------
+def test_a_lost_setpoint_in_lockstep_is_sent_again_with_the_sources_resend_and_the_loop_goes_on(choice):
+    """Lockstep's triangle heals a lost message with the source's re-send of the state it has no setpoint for. A
+    setpoint lost on its way to the estimator only (the source got it and sent the next state) left the estimator
+    waiting for it and the controller waiting for the estimate until the local ESO flew (a loaded run's
+    test_tdr_loop: "no setpoint 5248 came for state 5249"); the controller now sends it again on that re-send."""
+    ctrl = ControllerCore(ControllerConfig(), clock=fixed_clock)
+    est = EstimatorCore(EstimatorConfig(network=BASE, lockstep=True), choice.loaded, choice, clock=fixed_clock)
+    for k in range(3):
+        answers = est.on_state(state(k), 0.0)
+        assert ctrl.on_state(state(k), 0.0) == [] and [e.seq for e in answers] == [k]
+        (sp, _), = ctrl.on_estimate(answers[0], 0.0)
+        if k < 2:  # setpoint 2 lost on the way to the estimator
+            est.on_setpoint(sp, 0.0)
+    assert est.on_state(state(3), 0.0) == [] and ctrl.on_state(state(3), 0.0) == []
+    resent, = ctrl.on_state(state(3), 1.0)  # the source's re-send of state 3, 1 s later
+    assert resent[0].seq == 2
+    answers = est.on_setpoint(resent[0], 1.0)
+    assert [e.seq for e in answers] == [3] and est.events == []
+    (sp, _), = ctrl.on_estimate(answers[0], 1.0)
+    assert sp.seq == 3 and sp.estimate_source == "estimator"
+
+
 def test_controller_pairs_state_and_estimate_in_either_order():
     core = ControllerCore(ControllerConfig(), clock=fixed_clock)
     assert core.on_state(state(0), 0.0) == []
