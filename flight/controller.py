@@ -54,8 +54,9 @@ class ControllerConfig:
     sample itself, where the time check waits for the watchdog thread, which a loaded machine
     may wake late. ``lockstep_stale_s``: the same wait in lockstep, where no deadline is flown and
     the wait only tells a dead estimator from a slow one. A longer one cured nothing: the lockstep TDR
-    loop's pairs of silent samples (CI with 2 s, loaded run 45 with 5 s) were a state whose setpoint
-    never reached the estimator, left at the head of its queue (flight/estimator.py, fixed).
+    loop's pairs of silent samples (CI with 2 s, loaded run 45 with 5 s) were one setpoint lost on its
+    way to the estimator: its state waited for it, and it and the next flew the local ESO. It is now
+    sent again with the source's re-send after 1 s (:meth:`ControllerCore.on_state`).
     ``warmup_ticks``: samples a (re)started estimator must have run before its estimates are used again."""
 
     control: ControlConfig = option(default_factory=ControlConfig, flag="--rate", unit="Hz",

@@ -65,10 +65,10 @@ def test_a_network_retrained_from_the_recording_is_promoted_in_flight_without_a_
     # estimator's f̂. Elsewhere the controller may fly its local ESO where the estimator was silent for its
     # ControllerConfig.lockstep_stale_s (2 s) of the wall clock (measured: 2 samples while the estimator took the
     # trainer's offer, 2.7 s; in real time that stall is deadline misses). CI at 66836a8 and loaded run 45 at ff5d513
-    # each failed here with one silent sample near the offer and one at the swap. The second is explained and fixed:
-    # a state whose setpoint never reached the estimator stayed at the head of its queue, and a later state that
-    # arrived before its own setpoint waited behind it for good (flight/estimator.py). The first is such a lost
-    # setpoint, or the offer's stall; the estimator now says which ("lockstep: no setpoint ... came").
+    # each failed here with two silent samples around the offer and the swap: one setpoint lost on its way to the
+    # estimator (a loaded repro: "lockstep: no setpoint 5248 came for state 5249"), whose state then waited for it,
+    # and the sample after it, flown on the local ESO before the estimator was back. The controller now sends a lost
+    # setpoint again with the source's re-send after 1 s (flight/controller.py). Why the bus lost it is not known.
     # Deadlines in real time are the PX4 loop's claims (tests/px4/test_px4_tdr.py).
     assert report.lockstep_pace == LOCKSTEP_PACE and report.states > 3000
     # not asserted: every state with a setpoint the test's probe saw (1 of 6465 states during training without one, in

@@ -122,7 +122,7 @@ def test_a_lockstep_state_whose_setpoint_never_came_does_not_hold_up_the_states_
     """Setpoint 1 lost: state 2 waits for it; the controller flies 2 on its own (after ``lockstep_stale_s``) and
     the loop moves on. State 2 is then stale: it must not stay at the head of the queue, where every later state
     that arrives before its own previous setpoint would wait behind it for good (before: sample 4 never answered,
-    so the controller flew it on its local ESO too; a loaded run met such pairs of silent samples)."""
+    so the controller flew it on its local ESO too; found reading the code for test_tdr_loop's silent samples)."""
     core = EstimatorCore(EstimatorConfig(network=BASE, lockstep=True), choice.loaded, choice, clock=fixed_clock)
     assert [e.seq for e in core.on_state(state(0), 0.0)] == [0]
     core.on_setpoint(_setpoint(0), 0.0)
