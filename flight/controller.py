@@ -287,6 +287,7 @@ class ControllerCore:
         self.local.reset(meas, self._applied.thrust_n)
         self._estimates.clear()
         self._last_stepped = -1
+        self._last_output = []  # a re-sent sample of this flight is never answered with the last one's setpoint
         self._newest_estimate = None  # a new flight's samples count from 0 again
         self.mission = Mission(self.config.missions)
         name = self.config.mission

@@ -157,6 +157,8 @@ def test_a_lost_setpoint_in_lockstep_is_sent_again_with_the_sources_resend_and_t
     assert [e.seq for e in answers] == [3] and est.events == []
     (sp, _), = ctrl.on_estimate(answers[0], 1.0)
     assert sp.seq == 3 and sp.estimate_source == "estimator"
+    assert ctrl.on_state(state(0), 2.0) == [] and ctrl.on_state(state(0), 2.1) == [], \
+        "a new flight's sample 0, sent again before its estimate came: nothing of the last flight's answers it"
 
 
 def test_controller_pairs_state_and_estimate_in_either_order():
