@@ -443,15 +443,8 @@ class EstimatorCore:
             self.warm_ticks = 0
         else:
             applied = self._applied.get(state.seq - 1) or self._latest_applied or self._hover
-        # a state still waiting for its setpoint is stale once a newer one is answered (the controller flew it on
-        # its own); left waiting, it would hold up every later state that arrives before its own setpoint
-        if state.seq == 0:
-            self._waiting.clear()  # a new flight: what waited was the last one's
-        stale = [s.seq for s in self._waiting if s.seq < state.seq]
-        self._waiting = [s for s in self._waiting if s.seq > state.seq]
-        if stale:
-            self.events.append(("warning", f"lockstep: no setpoint {stale[0] - 1} came for state {stale[0]}; "
-                                           f"the loop moved on without it (at state {state.seq})"))
+        if self._waiting:  # lockstep only: nothing to do on real time's path
+            self._drop_waiting_passed_by(state.seq)
         self._last_seq = state.seq
         wrong_rate = self.rate_check.observe(state.seq, state.t_s)
         if wrong_rate:
@@ -466,6 +459,17 @@ class EstimatorCore:
             delta_f_hat_mps2=vec(est.delta_f_hat), z=vec(est.z), pathway=est.pathway, network_id=self.network_id,
             warm_ticks=self.warm_ticks)
         return [self._last_output]
+
+    def _drop_waiting_passed_by(self, seq: int) -> None:
+        """Forget the states still waiting for their setpoint that sample ``seq`` passed: the controller flew them on
+        its own. Left waiting, one would hold up every later state that arrives before its own setpoint."""
+        if seq == 0:
+            self._waiting.clear()  # a new flight: what waited was the last one's
+        stale = [s.seq for s in self._waiting if s.seq < seq]
+        self._waiting = [s for s in self._waiting if s.seq > seq]
+        if stale:
+            self.events.append(("warning", f"lockstep: no setpoint {stale[0] - 1} came for state {stale[0]}; "
+                                           f"the loop moved on without it (at state {seq})"))
 
     def _shadow(self, meas, applied: AppliedControl, est) -> None:
         """The candidate predicts beside the active network, on its own inputs."""

@@ -33,10 +33,11 @@ def lose(flight, seconds: float, then_s: float) -> tuple[float, list[str]]:
 
 def recorded_spans(directory) -> dict[str, tuple[float, float]]:
     """Each recording in ``directory``: the world's time (s) of its first and last state."""
+    from recordings.catalog import recordings_in
     from recordings.reader import read_recording
 
     spans = {}
-    for path in sorted(p for p in directory.glob("*.rrd") if not p.name.startswith(".")):  # not a compaction's scratch
+    for path in recordings_in(directory):
         t_s = read_recording(path).channel("state").columns.get("t_s")
         if t_s is not None and len(t_s):
             spans[path.name] = (float(t_s[0]), float(t_s[-1]))
