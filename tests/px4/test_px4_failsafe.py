@@ -61,6 +61,6 @@ def test_the_gateway_killed_mid_lemniscate_px4s_own_failsafe_within_com_of_loss_
     assert flight.cmd("px4_gateway", "land").ok  # the operator: PX4's AUTO.LAND (it needs only a local position)
     wait_for("PX4 disarms by itself once its land detector says landed", lambda: not flight.telemetry().armed, 30)
     print(f"PX4's own land from its hold: disarmed {time.monotonic() - start:.1f} s after the command")
-    assert flight.log("Landing detected") and flight.log("Disarmed by landing")  # PX4's own words
+    assert flight.log("Landing detected", before) and flight.log("Disarmed by landing", before)  # PX4's own words
     last = flight.probe.get("truth")[-1]
     assert last.on_ground and not last.crashed

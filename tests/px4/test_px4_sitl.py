@@ -124,7 +124,7 @@ def test_the_controllers_landing_and_px4s_land_detector_disarms(flight):
         ((m.t_s,) for m in flight.probe.get("truth") if m.stamp_s >= disarmed.stamp_s), None), 5)
     print(f"the controller's landing: PX4 disarmed {disarmed_s - landing_s:.1f} s of PX4's time after it began")
     assert disarmed_s - landing_s < 10.0, "descent and settling ~2 s, land detector ~1 s, COM_DISARM_LAND 2 s"
-    assert flight.log("Landing detected") and flight.log("Disarmed by landing")  # PX4's own words
+    assert flight.log("Landing detected", n0) and flight.log("Disarmed by landing", n0)  # PX4's own words
     truth = flight.probe.get("truth")[-1]
     assert truth.on_ground and not truth.crashed and not flight.telemetry().in_air
 
