@@ -111,6 +111,19 @@ PX4_LANE = "px4 flights"
 NATNET_LANE = "natnet flights"
 #: The lanes that fly with nothing but computing beside them, in this order.
 ALONE_LANES = (PX4_LANE, NATNET_LANE)
+#: Two lanes: the flights that may fly beside NatNet's lane once the computing is done, instead of that worker
+#: waiting idle (the computing, ~420 test-seconds, ends before PX4's and NatNet's lanes, ~560, do: quiet run at
+#: 67e0a88). Each used under half a core in that run (out/test-files.json: CPU over seconds), and none claims a
+#: wall-clock time tighter than seconds; not PX4's (its clock fell behind beside any flight).
+BESIDE_NATNET = frozenset({
+    "browser/test_replay_dashboard.py",  # 29 s, 0.24 cores
+    "process/test_canary.py",  # 28 s, 0.42 cores
+    "process/test_recorder.py",  # 20 s, 0.38 cores
+    "browser/test_open_dashboard.py",  # 7 s, 0.21 cores
+    "browser/test_viser_sender.py",  # 6 s, 0.02 cores
+    "process/test_mocap_source.py",  # 3 s, 0.10 cores
+    "process/test_gateway_words.py",  # 2 s, 0.20 cores
+})
 ONE_LANE = "flights"  # every flight in one lane (a busy machine, or NESO_TEST_LANES=1: flight_lanes)
 _lanes: dict[str, object] = {}  # the controller's: flight_lanes() of this run
 
@@ -154,15 +167,17 @@ def unit_flies(unit: str) -> bool:
     return unit in (ONE_LANE, PX4_LANE, NATNET_LANE) or flies(unit)
 
 
-def next_unit(waiting: list[str], alone_elsewhere: bool) -> str | None:
+def next_unit(waiting: list[str], alone_elsewhere: str | None) -> str | None:
     """Two lanes: the unit a worker with room takes next out of ``waiting`` (in collection order), or None to wait:
-    the :data:`ALONE_LANES` first, in order; while one of them flies on the other worker (``alone_elsewhere``) only
-    computing units, so that no other flight runs beside it (the worker flying it takes the next unit itself: xdist
-    runs a worker's last test only once it has the one after); then flights before computing (the computing tiers,
-    niced, run beside flights; a flight left for last would run alone), the browser's first."""
+    the :data:`ALONE_LANES` first, in order; while one of them flies on the other worker (``alone_elsewhere``: its
+    name) only computing units, and once they are done, beside NatNet's lane, the flights of :data:`BESIDE_NATNET`,
+    so that no other flight runs beside it (the worker flying it takes the next unit itself: xdist runs a worker's
+    last test only once it has the one after); then flights before computing (the computing tiers, niced, run beside
+    flights; a flight left for last would run alone), the browser's first."""
     computing = [u for u in waiting if not unit_flies(u)]
     if alone_elsewhere:
-        return computing[0] if computing else None
+        light = [u for u in waiting if u in BESIDE_NATNET] if alone_elsewhere == NATNET_LANE else []
+        return (computing or light or [None])[0]
     alone = [lane for lane in ALONE_LANES if lane in waiting]
     # the longest first, so that none is left to fly alone at the end: the browser's files (the dashboard's 70 s)
     flights = sorted((u for u in waiting if unit_flies(u)), key=lambda u: not u.startswith("browser/"))
@@ -239,10 +254,10 @@ def pytest_xdist_make_scheduler(config, log):
         """:func:`next_unit` decides what a worker takes; a worker with nothing it may take waits, and every worker is
         offered work again whenever a test ends anywhere (a lane flown alone done frees the other)."""
 
-        def _alone_elsewhere(self, node) -> bool:
-            """An :data:`ALONE_LANES` lane on another worker than ``node``, not done."""
-            return any(not all(work[lane].values()) for other, work in self.assigned_work.items() if other is not node
-                       for lane in ALONE_LANES if lane in work)
+        def _alone_elsewhere(self, node) -> str | None:
+            """The :data:`ALONE_LANES` lane flying on another worker than ``node``, not done; None if none is."""
+            return next((lane for other, work in self.assigned_work.items() if other is not node
+                         for lane in ALONE_LANES if lane in work and not all(work[lane].values())), None)
 
         def _assign_work_unit(self, node) -> None:
             unit = next_unit(list(self.workqueue), self._alone_elsewhere(node))
@@ -319,8 +334,8 @@ def pytest_terminal_summary(terminalreporter):
         lane = lane if lane in (ONE_LANE, PX4_LANE, NATNET_LANE, "computing") else "other flights"
         lanes[lane] = lanes.get(lane, 0.0) + seconds
     chosen = (f"{_lanes['lanes']} flying lane(s), {_lanes['why']}: " + ("a lane's files one after another on one worker"
-              if _lanes["lanes"] == 1 else "PX4's, then NatNet's, alone beside the computing tiers, then the others two "
-              "at a time")
+              if _lanes["lanes"] == 1 else "PX4's, then NatNet's, alone beside the computing tiers (NatNet's "
+              "also beside the light flights once the computing is done), then the others two at a time")
               if _lanes else "one worker")
     terminalreporter.write_line(f"lanes ({chosen}), test-seconds: " +
                                 ", ".join(f"{lane} {s:.1f} s" for lane, s in lanes.items()))

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import (FLIGHT_TIERS, OFFLINE_MARK, NATNET_LANE, ONE_LANE, PX4_LANE, TIERS, flight_lanes, next_unit,
-                            unit_flies, worker_group)
+from tests.conftest import (BESIDE_NATNET, FLIGHT_TIERS, OFFLINE_MARK, NATNET_LANE, ONE_LANE, PX4_LANE, TIERS, flies,
+                            flight_lanes, next_unit, unit_flies, worker_group)
 
 TESTS = Path(__file__).resolve().parents[1]
 
@@ -51,17 +51,28 @@ def test_the_flying_tiers_files_fly_in_their_lane_unless_marked_offline():
 
 def test_two_lanes_fly_px4_then_natnet_alone_then_the_other_flights_before_computing():
     """What a worker takes next with two lanes (conftest.next_unit): PX4's lane first, then NatNet's; while one of
-    them flies on the other worker, computing only, or nothing (wait); after them the flights, the browser's first,
-    then computing."""
+    them flies on the other worker, computing first, then beside NatNet's (never PX4's) the light flights, or
+    nothing (wait); after them the flights, the browser's first, then computing."""
     flight, browser, computing = "process/test_live_flight.py", "browser/test_dashboard.py", "unit/test_mission.py"
-    assert next_unit([flight, NATNET_LANE, PX4_LANE, computing], alone_elsewhere=False) == PX4_LANE
-    assert next_unit([flight, NATNET_LANE, browser, computing], alone_elsewhere=True) == computing
-    assert next_unit([flight, NATNET_LANE, browser], alone_elsewhere=True) is None
-    assert next_unit([flight, browser, NATNET_LANE, computing], alone_elsewhere=False) == NATNET_LANE
-    assert next_unit([flight, browser, computing], alone_elsewhere=False) == browser
-    assert next_unit([computing, flight], alone_elsewhere=False) == flight
-    assert next_unit([computing], alone_elsewhere=False) == computing
-    assert next_unit([], alone_elsewhere=False) is None
+    light = "process/test_canary.py"
+    assert flight not in BESIDE_NATNET and browser not in BESIDE_NATNET and light in BESIDE_NATNET
+    assert next_unit([flight, NATNET_LANE, PX4_LANE, computing], alone_elsewhere=None) == PX4_LANE
+    assert next_unit([flight, NATNET_LANE, browser, light, computing], alone_elsewhere=PX4_LANE) == computing
+    assert next_unit([flight, NATNET_LANE, browser, light], alone_elsewhere=PX4_LANE) is None
+    assert next_unit([flight, browser, light, computing], alone_elsewhere=NATNET_LANE) == computing
+    assert next_unit([flight, browser, light], alone_elsewhere=NATNET_LANE) == light
+    assert next_unit([flight, browser], alone_elsewhere=NATNET_LANE) is None
+    assert next_unit([flight, browser, NATNET_LANE, computing], alone_elsewhere=None) == NATNET_LANE
+    assert next_unit([flight, browser, computing], alone_elsewhere=None) == browser
+    assert next_unit([computing, flight], alone_elsewhere=None) == flight
+    assert next_unit([computing], alone_elsewhere=None) == computing
+    assert next_unit([], alone_elsewhere=None) is None
+
+
+def test_the_flights_beside_natnets_lane_are_files_that_fly_and_neither_px4s_nor_natnets():
+    for f in BESIDE_NATNET:
+        assert (TESTS / f).is_file() and flies(f), f
+        assert worker_group(f"tests/{f}::test_x", lanes=2) == f, f
 
 
 def test_a_machine_with_a_core_busy_flies_one_lane_and_the_lanes_asked_are_flown(monkeypatch):
