@@ -8,9 +8,9 @@ receives it (``R``). A miss is a setpoint not there at the source's next tick (t
 back (``R − P``), and blames the largest. One that never comes: skipped, if a newer setpoint
 came on the controller's local ESO (the estimator did not answer), else lost on the bus. The
 misses are summed up in one text (the first at once, then at most one per ``report_period_s``)
-with the worst one, the machine's load and a hint, so an operator can tell a loaded machine
-(every stage a little late, load above the cores) from a fault (the estimator silent, or one
-process late on a quiet machine).
+with their sample numbers, the worst one, the machine's load and a hint, so an operator can tell
+a loaded machine (every stage a little late, load above the cores) from a fault (the estimator
+silent, or one process late on a quiet machine).
 
 Pure (times are the caller's monotonic seconds, the load is passed in).
 """
@@ -65,6 +65,17 @@ class Miss:
             path = (f"estimator {self.estimator_ms:.1f} ms (state → estimate), controller {self.controller_ms:.1f} ms "
                     "(estimate → setpoint)")
         return f"sample {self.seq}: setpoint {self.late_ms:.1f} ms after the deadline — {path}, bus back {self.back_ms:.1f} ms"
+
+
+def seq_ranges(seqs) -> str:
+    """Sample numbers as sorted ranges: ``[3, 1, 2, 7]`` → ``"1–3, 7"``."""
+    runs: list[list[int]] = []
+    for k in sorted(set(seqs)):
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    return ", ".join(str(a) if a == b else f"{a}–{b}" for a, b in runs)
 
 
 @dataclass
@@ -126,7 +137,8 @@ class DeadlineWatch:
             verdict = f"machine busy ({load}): likely load, not a fault"
         else:
             verdict = f"machine not busy ({load}): look at the {_WHERE[by_stage.most_common(1)[0][0]]}"
+        stages = ", ".join(f"{k} {n}" for k, n in by_stage.most_common())
         return (f"{len(misses)} deadline miss{'es' if len(misses) > 1 else ''}"
                 f"{'' if span is None else f' in the last {span:.1f} s'} "
-                f"(late in: {', '.join(f'{k} {n}' for k, n in by_stage.most_common())}); worst {worst.text()}; "
-                f"{verdict}")
+                f"at sample{'s' if len(misses) > 1 else ''} {seq_ranges(m.seq for m in misses)} "
+                f"(late in: {stages}); worst {worst.text()}; {verdict}")
