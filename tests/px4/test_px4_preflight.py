@@ -93,8 +93,16 @@ def test_each_required_parameter_wrong_in_turn_is_a_no_go_naming_it_and_arming_i
         assert telemetry is not None and not telemetry.armed, "neso up's vehicle did not arm"
         right = float(next(p.world for p in checked() if p.name == name))
         assert param_set(flight, name, right).ok
-    code, out = preflight(flight)
-    assert code == 0, out
+    # put back, a GO again, as an operator reruns `neso preflight`: a parameter set can hold PX4 up for a second on
+    # a busy machine (EKF2 takes its new parameters; the world waits for PX4 in lockstep: "no state for 0.6 s", loaded
+    # run 53), which no parameter is to blame for. Before: the first run had to say GO
+    runs = []
+    while not runs or runs[-1][0] != 0 and len(runs) < 15:
+        time.sleep(1.0 if runs else 0.0)
+        runs.append(preflight(flight))
+    named = [line for _, out in runs for line in out.splitlines()
+             if line.startswith("NO-GO") and line.split()[1] in WRONG]
+    assert runs[-1][0] == 0 and not named, (named, runs[-1][1])
 
 
 def test_an_operators_override_arms_on_a_no_go_and_says_so(flight):
@@ -110,11 +118,16 @@ def test_an_operators_override_arms_on_a_no_go_and_says_so(flight):
     wait_for("PX4 armed", lambda: (t := flight.telemetry()) is not None and t.armed, 10)
     # said by the gateway with the arm; its line reaches this process's copy of the output a moment later on a busy
     # machine (the reply now comes as soon as the arm is done: it was checked before the line had arrived)
-    wait_for("the override said", lambda: flight.log("armed on a preflight NO-GO by the operator's override: "
-                                                     "EKF2_EV_QMIN: 0"), 10)
+    # naming what it overrode: "EKF2_EV_QMIN: 0" alone, or among the names when more than two items are NO-GO (a
+    # parameter set held PX4 up for a second on a busy machine, and the motion capture's items failed with it:
+    # "EKF2_EV_QMIN, EKF2 fuses the motion capture, rigid body seen", loaded run 53; before, the text had to be the one)
+    said = "armed on a preflight NO-GO by the operator's override: "
+    wait_for("the override said", lambda: any(said in line and "EKF2_EV_QMIN" in line.split(said)[1]
+                                              for line in flight.output), 10)
     time.sleep(2.5)
     sub.undeclare()
-    assert sum("override: EKF2_EV_QMIN: 0" in v.override and not v.go for v in verdicts) >= 2, verdicts[-1:]
+    assert sum("EKF2_EV_QMIN" in v.override.partition("override: ")[2] and not v.go for v in verdicts) >= 2, \
+        verdicts[-1:]
     assert flight.cmd("px4_gateway", "disarm").ok
     wait_for("PX4 disarmed", lambda: (t := flight.telemetry()) is not None and not t.armed, 10)
     assert param_set(flight, "EKF2_EV_QMIN", 1).ok
@@ -170,6 +183,10 @@ def test_px4_dates_external_vision_by_the_capture_time(flight):
     import numpy as np
     from pyulog import ULog
 
+    # PX4's time sync converges after 500 answers with round trips under 10 ms: on a busy machine later than this
+    # module's other tests take (loaded run 53: never within them, and PX4 dated every sample on arrival)
+    wait_for("the gateway's preflight: PX4 takes the capture time (its time sync converged)",
+             lambda: "PX4 takes the capture time" in preflight(flight)[1], 90, 1.0)
     workdir = Path(tempfile.gettempdir()) / f"neso-px4-{os.getuid()}-{_instance_of(flight)}-uav1"
     ulog = max(workdir.glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
     data = ULog(str(ulog), ["vehicle_visual_odometry"]).data_list[0].data
