@@ -175,7 +175,7 @@ def next_unit(waiting: list[str], alone_elsewhere: str | None) -> str | None:
     """Two lanes: the unit a worker with room takes next out of ``waiting`` (in collection order), or None to wait:
     the :data:`ALONE_LANES` first, in order; while one of them flies on the other worker (``alone_elsewhere``: its
     name) only computing units, and once they are done, beside NatNet's lane, the flights of :data:`BESIDE_NATNET`,
-    so that no other flight runs beside it (the worker flying it takes the next unit itself: xdist runs a worker's
+    so that no other flight runs beside PX4's and only light ones beside NatNet's (the worker flying it takes the next unit itself: xdist runs a worker's
     last test only once it has the one after); then flights before computing (the computing tiers, niced, run beside
     flights; a flight left for last would run alone), the browser's first."""
     computing = [u for u in waiting if not unit_flies(u)]
