@@ -138,15 +138,15 @@ def test_a_read_back_gives_exactly_the_numbers_published(flight):
                 assert m == pub[m.seq], (f.name, topic, m.seq)
             seqs = sorted({m.seq for m in got})
             # a recorder that has just (re)started joins the bus while its links to the publishers come up:
-            # count what it missed in its first 0.5 s; after that, the bus drops a sample to a subscriber only
-            # when its queue is full (the loop's publishers never wait), which a loaded machine may cause
+            # count what it missed in its first 0.5 s; after that, nothing (the publishers' transmit queues hold
+            # 16 batches: with Zenoh's 2, a loaded machine dropped puts, tests/process/test_bus_under_load.py)
             settled = seqs[0] + 25
             missing = sorted(s for s in set(range(seqs[0], seqs[-1] + 1)) - set(seqs)
                              if s in pub and pub[s].stamp_s <= flight.closed.stamp_s)
             late = [s for s in missing if s >= settled]
             print(f"{f.name} {topic}: {len(got)} read back, missed while joining {[s for s in missing if s < settled]}, "
                   f"after {late}")
-            assert len(late) <= max(2, len(got) // 100), f"{f.name} {topic}: published samples missing {late}"
+            assert not late, f"{f.name} {topic}: published samples missing {late}"
             summary = rec.properties.get("summary", {})
             if topic in ("state", "estimate", "setpoint") and summary:
                 assert summary["missed_samples"].get(topic, 0) >= len(late), "the recorder counted what it missed"

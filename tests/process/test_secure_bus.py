@@ -246,7 +246,8 @@ def test_when_the_operators_laptop_drops_off_the_vehicle_flies_its_mission_on(fl
     setpoints = {m.seq: m for m in flight.probe.get("setpoint") if frozen_from <= m.seq <= end}
     missing = sorted(set(range(frozen_from, end + 1)) - set(setpoints))
     assert end - frozen_from >= 14 * 50 * 0.8, f"the source went on: {end - frozen_from} samples in 15 s"
-    assert len(missing) <= 0.005 * (end - frozen_from), f"{len(missing)} setpoints missing: {missing[:20]}"
+    # none lost: the bus's transmit queues hold 16 batches, not Zenoh's 2 (tests/process/test_bus_under_load.py)
+    assert not missing, f"{len(missing)} setpoints missing: {missing[:20]}"
     local = [s for s, m in setpoints.items() if m.estimate_source != "estimator"]
     assert not local, f"the controller fell back to its local ESO at samples {local[:10]}"
     refs = [m for m in flight.probe.get("reference") if frozen_from <= m.seq <= end]
