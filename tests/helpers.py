@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import random
+import re
 import struct
 import sys
 import threading
@@ -251,6 +252,15 @@ def worst_case_run(inp, p: np.ndarray, e0: np.ndarray, *, dt_s: float = 1e-3, st
             ts.append(k * dt_s)
             out.append(e.copy())
     return np.array(ts), np.array(out)
+
+
+def named_samples(report: str) -> set[int]:
+    """The sample numbers a source's deadline report names ("… at samples 280–283, 291 (late in: …)"),
+    the inverse of ``flight.deadline.seq_ranges``; none when it names none."""
+    if " at sample" not in report:
+        return set()
+    ranges = report.split(" at sample", 1)[1].split(" (", 1)[0]  # "s 280–283, 291"
+    return {k for a, b in re.findall(r"(\d+)(?:–(\d+))?", ranges) for k in range(int(a), int(b or a) + 1)}
 
 
 def fixed_clock() -> float:

@@ -3,7 +3,6 @@ state is published meanwhile, the world flies on, the source says when it began 
 counts as a missed deadline (by its sample numbers), and the hover comes back."""
 from __future__ import annotations
 
-import re
 import time
 
 import numpy as np
@@ -11,6 +10,7 @@ import numpy as np
 from runtime.client import command
 from runtime.schema import EventMsg
 from tests.busutil import NesoUp, free_port, peer
+from tests.helpers import named_samples
 
 
 def test_a_second_without_motion_capture_is_no_state_then_the_hover_again(tmp_path):
@@ -44,9 +44,7 @@ def test_a_second_without_motion_capture_is_no_state_then_the_hover_again(tmp_pa
     unseen = {m.seq for m in truth} - {m.seq for m in states}
     assert 45 <= len(unseen) <= 55, "the world's lost second: its samples without a state"
     misses = [t for t in since_lost if "deadline miss" in t]
-    named = [t.split(" at sample")[1].split(" (")[0] for t in misses]  # "s 280–283, 291"
-    missed = {k for ranges in named for a, b in re.findall(r"(\d+)(?:–(\d+))?", ranges)
-              for k in range(int(a), int(b or a) + 1)}
+    missed = set().union(*map(named_samples, misses))
     assert not missed & unseen, (sorted(missed & unseen), since_lost)
     assert all("likely load, not a fault" in t for t in misses), misses
     assert not any(m.crashed for m in truth) and abs(truth[-1].pos_enu_m[2] - 1.0) < 0.05, truth[-1].pos_enu_m

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from runtime.schema import SetpointMsg
 from flight.deadline import DeadlineWatch, Miss, seq_ranges
+from tests.helpers import named_samples
 
 
 def setpoint(seq, *, state_s, estimate_s, published_s):
@@ -65,5 +66,12 @@ def test_an_estimator_that_stops_answering_is_named_whatever_the_load():
         "controller's local ESO, bus back 1.0 ms")
 
 
-def test_the_missed_samples_are_named_as_ranges():
+def test_the_missed_samples_are_named_as_ranges_and_the_tests_read_them_back():
     assert seq_ranges([7, 3, 1, 2, 2]) == "1–3, 7" and seq_ranges([5]) == "5" and seq_ranges([]) == ""
+    watch = DeadlineWatch()
+    for seq in (280, 281, 282, 283, 291):
+        watch.missed(seq, state_stamp_s=0.02 * seq, deadline_s=0.02 * seq + 0.015)
+    watch.arrived(setpoint(292, state_s=5.84, estimate_s=5.841, published_s=5.842), received_s=5.843)
+    text = watch.report(6.0, load_1min=3.0, cores=2)
+    assert named_samples(text) == {280, 281, 282, 283, 291}, text
+    assert named_samples("rigid body 'uav1' lost") == set()
