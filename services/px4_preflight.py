@@ -7,12 +7,13 @@ PX4's time sync with the gateway (TIMESYNC), which lets PX4 use the capture time
 **Time sync** (PX4 v1.16: ``src/lib/timesync/Timesync.cpp``, ``src/modules/mavlink/mavlink_timesync.cpp``): PX4
 sends TIMESYNC requests (``tc1`` 0, ``ts1`` its time in ns) and converts a received ``time_usec`` into its own clock
 (``sync_stamp``) only once its offset estimate has converged: 500 answers with a round trip under 10 ms
-(``CONVERGENCE_WINDOW``, ``MAX_RTT_SAMPLE``); before that it stamps ODOMETRY on arrival. MAVSDK answers them only
-when its timesync is enabled, which MAVSDK-Python 4.1 does not do, so the gateway answers them here with
-``time.monotonic_ns()`` — the clock of ``time_usec`` — and asks PX4 for them at 50 Hz until PX4 has had
-:data:`CONVERGED_ANSWERS` (10 s instead of the onboard link's 10 Hz, 50 s), then at its own rate again. Its own
-TIMESYNC requests to PX4 measure the link's round trip (half of it is the link's share of the motion capture's
-delay to PX4).
+(``CONVERGENCE_WINDOW``, ``MAX_RTT_SAMPLE``); before that it stamps ODOMETRY on arrival; a time jump (its clock
+moved against ours by over 100 ms, as a stall of PX4 SITL in lockstep does) resets it to no samples
+(:mod:`flight.px4_timesync` follows all of that from PX4's requests). MAVSDK answers them only when its timesync is
+enabled, which MAVSDK-Python 4.1 does not do, so the gateway answers them here with ``time.monotonic_ns()`` — the
+clock of ``time_usec`` — and asks PX4 for them at 50 Hz until PX4 has converged (10 s instead of the onboard link's
+10 Hz, 50 s) and again after a reset, else at its own rate. Its own TIMESYNC requests to PX4 measure the link's round
+trip (half of it is the link's share of the motion capture's delay to PX4).
 """
 from __future__ import annotations
 
@@ -24,10 +25,9 @@ from collections import deque
 
 from flight.preflight import PreflightConfig, PreflightInputs, ServiceSeen, Verdict, preflight
 from flight.px4_params import checked
+from flight.px4_timesync import CONVERGENCE_WINDOW, MAX_RTT_US, Px4Timesync
 from runtime.schema import PreflightMsg
 
-CONVERGED_ANSWERS = 500  # PX4's Timesync CONVERGENCE_WINDOW
-MAX_RTT_S = 0.010  # PX4's Timesync MAX_RTT_SAMPLE: an answer slower than this does not count
 FAST_TIMESYNC_HZ = 50.0
 MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_TIMESYNC = 511, 111
 MAV_CMD_REQUEST_MESSAGE, MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN = 512, 49
@@ -122,14 +122,15 @@ class CertificateCheck:
 
 class TimeSync:
     """Answers PX4's TIMESYNC requests with this machine's monotonic clock, measures the link's round trip with
-    requests of its own, and counts the answers PX4 could use (module docstring)."""
+    requests of its own, and follows PX4's time sync from its requests (``px4``: :class:`flight.px4_timesync.
+    Px4Timesync`; module docstring)."""
 
     def __init__(self, direct, system_id: int, log) -> None:
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         self._message, self._direct, self._system_id, self._log = MavlinkMessage, direct, system_id, log
         self._lock = threading.Lock()
-        self.answered = 0
+        self.px4 = Px4Timesync()
         self._fast = False
         self.rtt_s: deque[float] = deque(maxlen=50)
         self._handle = direct.subscribe_message("TIMESYNC", self._on_timesync)
@@ -148,11 +149,18 @@ class TimeSync:
         if tc1 == 0:  # PX4 asks: answer at once with our clock (its offset estimate is PX4 - ours)
             self._send("TIMESYNC", {"tc1": now_ns, "ts1": ts1, "target_system": message.system_id,
                                     "target_component": message.component_id})
+            rtt = self.rtt_p50_s()
             with self._lock:
-                self.answered += 1
-                slow_down = self._fast and self.answered >= CONVERGED_ANSWERS + 100
-                self._fast = self._fast and not slow_down
-            if slow_down:
+                reset = self.px4.request(ts1 / 1e3, now_ns / 1e3, rtt_ok=rtt is not None and rtt * 1e6 < MAX_RTT_US)
+                slow_down = self._fast and self.px4.samples >= CONVERGENCE_WINDOW + 100
+                self._fast = (self._fast and not slow_down) or reset
+                jump_ms = self.px4.last_jump_us / 1e3
+            if reset:
+                self._log(f"PX4's clock jumped {jump_ms:+.0f} ms against ours (a stall): PX4 resets its time sync and "
+                          f"dates vision on arrival until {CONVERGENCE_WINDOW} more answers; asking for them at "
+                          f"{FAST_TIMESYNC_HZ:g} Hz")
+                self.request_rate(FAST_TIMESYNC_HZ)
+            elif slow_down:
                 self.request_rate(0.0)
         elif 0 < now_ns - ts1 < 5_000_000_000:  # PX4's answer to one of ours (ts1: our clock when we asked)
             with self._lock:
@@ -178,11 +186,14 @@ class TimeSync:
         return rtts[len(rtts) // 2] if rtts else None
 
     def px4_converged(self) -> bool:
-        """Whether PX4's offset estimate has converged by now, as PX4's Timesync counts: enough answers, with round
-        trips (ours measured the same link) under its 10 ms."""
-        rtt = self.rtt_p50_s()
+        """Whether PX4 dates vision by the capture time now, as PX4's Timesync counts (:mod:`flight.px4_timesync`)."""
         with self._lock:
-            return self.answered >= CONVERGED_ANSWERS and rtt is not None and rtt < MAX_RTT_S
+            return self.px4.converged
+
+    def px4_samples(self) -> int:
+        """PX4's time-sync samples since it last (re)started counting (it converges at 500)."""
+        with self._lock:
+            return self.px4.samples
 
     def close(self) -> None:
         self._direct.unsubscribe_message(self._handle)
@@ -301,7 +312,7 @@ class GatewayPreflight:
             ev_offset_m=offset, ev_height_offset_m=height, origin_alt_m=t.get("origin_alt_m"), mocap=mocap,
             state_age_s=now - pose_s if pose_s is not None else math.inf,
             services=self.watch.services(link.node.alive_services(), now), delay_ms=delay,
-            px4_uses_capture_time=ts is not None and ts.px4_converged(), time_sync_answers=ts.answered if ts else 0,
+            px4_uses_capture_time=ts is not None and ts.px4_converged(), time_sync_answers=ts.px4_samples() if ts else 0,
             certificate=self.certificate.verdict(network),
             battery_remaining=t["battery"] if math.isfinite(t["battery"]) else -1.0,
             battery_v=t["battery_v"] if math.isfinite(t["battery_v"]) else 0.0)

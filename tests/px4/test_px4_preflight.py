@@ -184,9 +184,20 @@ def test_px4_dates_external_vision_by_the_capture_time(flight):
     from pyulog import ULog
 
     # PX4's time sync converges after 500 answers with round trips under 10 ms: on a busy machine later than this
-    # module's other tests take (loaded run 53: never within them, and PX4 dated every sample on arrival)
-    wait_for("the gateway's preflight: PX4 takes the capture time (its time sync converged)",
-             lambda: "PX4 takes the capture time" in preflight(flight)[1], 90, 1.0)
+    # module's other tests take (loaded run 53: never within them, and PX4 dated every sample on arrival). A stall of
+    # its lockstep clock resets it (loaded run 57: dated on arrival again), and it converges anew: the ULog is read
+    # once the gateway has said PX4 takes the capture time for 3 s with no reset between (PX4's logger writes a
+    # moment after)
+    def converged_for_3_s() -> bool:
+        resets = sum("PX4's clock jumped" in line for line in flight.output)
+        if "PX4 takes the capture time" not in preflight(flight)[1]:
+            return False
+        time.sleep(3.0)
+        return ("PX4 takes the capture time" in preflight(flight)[1]
+                and sum("PX4's clock jumped" in line for line in flight.output) == resets)
+
+    wait_for("the gateway's preflight: PX4 takes the capture time (its time sync converged) for 3 s",
+             converged_for_3_s, 120, 1.0)
     workdir = Path(tempfile.gettempdir()) / f"neso-px4-{os.getuid()}-{_instance_of(flight)}-uav1"
     ulog = max(workdir.glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
     data = ULog(str(ulog), ["vehicle_visual_odometry"]).data_list[0].data
@@ -217,7 +228,8 @@ def _px4_firmware_pid(flight) -> int:
 
 def test_px4_stopped_longer_than_the_world_waits_resumes_lockstep_on_the_same_connection(flight):
     """PX4 frozen for 1.5 s (SIGSTOP), longer than the world waits for an answer (1 s), then let go: the world stops
-    waiting, keeps the connection, and lockstep resumes at PX4's next answers; PX4 answers a parameter set again.
+    waiting, keeps the connection, and lockstep resumes at PX4's next answers; PX4 answers a parameter set again. PX4's
+    clock jumped against ours meanwhile: PX4 resets its time sync, the gateway says so, and it converges anew.
     Before: the world dropped the connection; PX4 SITL connects once at boot and never again, so it froze for good
     (CI: after 'poll timeout' under load, the three tests above this one failed: no state, parameter sets timed out,
     the origin never taken)."""
@@ -233,6 +245,13 @@ def test_px4_stopped_longer_than_the_world_waits_resumes_lockstep_on_the_same_co
     said = flight.output[mark:]
     assert any("PX4 not answering" in line for line in said), said[-20:]
     assert not any("PX4 link dropped" in line for line in said), said[-20:]
+    # PX4's lockstep clock stood still against ours while the world waited: PX4 resets its time sync and dates vision
+    # on arrival; the gateway, following PX4's time sync from its requests, says so at once (loaded run 57: PX4 reset
+    # after a stall while the gateway still said it took the capture time), then PX4 converges anew
+    wait_for("PX4 resets its time sync", lambda: flight.log("time jump detected. Resetting", mark), 20)
+    wait_for("the gateway says PX4 reset its time sync", lambda: flight.log("PX4's clock jumped", mark), 5)
+    assert "PX4 takes the capture time" not in preflight(flight)[1]
     seq = flight.probe.get("state")[-1].seq
     wait_for("states flow again", lambda: flight.probe.get("state")[-1].seq > seq + 50, 10)
     assert param_set(flight, "MIS_TAKEOFF_ALT", 1.0).ok, "PX4 answers MAVLink again"
+    wait_for("PX4's time sync converged anew", lambda: "PX4 takes the capture time" in preflight(flight)[1], 60, 1.0)
