@@ -415,13 +415,14 @@ class EstimatorCore:
         verdict = self.canary.observe(ref.segment, self._segment[1], z - ref.pos_enu_m[2])
         if verdict is None:
             return
-        self.canary_last = verdict.text()
+        text = f"{verdict.text()} at sample {ref.seq}"
+        self.canary_last = text
         self.changes += 1
         if not verdict.rollback:
-            self.events.append(("info", verdict.text()))
+            self.events.append(("info", text))
             return
         ok, message = self.rollback()
-        self.events.append(("warning", f"{verdict.text()}: {message}" if ok else f"{verdict.text()}; {message}"))
+        self.events.append(("warning", f"{text}: {message}" if ok else f"{text}; {message}"))
 
     def on_state(self, state: StateMsg, now_s: float) -> list[EstimateMsg]:
         if state.seq == self._last_seq and self._last_output is not None:

@@ -129,7 +129,8 @@ class CanaryConfig:
 class CanaryVerdict:
     """What the canary decided: ``rollback`` true when the network made tracking worse.
     ``threshold``: the ratio it had to exceed (1 + margin, or the noise floor if larger);
-    ``tripwire``: decided early on a gross degradation."""
+    ``tripwire``: decided early on a gross degradation, ``since`` samples after the promotion (the first it may
+    is ``trip_samples``: a network that degrades faster is already past the tripwire there)."""
 
     rollback: bool
     segment: str
@@ -138,6 +139,7 @@ class CanaryVerdict:
     samples: int
     threshold: float = 1.0
     tripwire: bool = False
+    since: int = 0
 
     @property
     def change(self) -> float:
@@ -145,7 +147,7 @@ class CanaryVerdict:
 
     def text(self) -> str:
         verb = "worse: rolled back" if self.rollback else "kept"
-        how = (f"tripwire (> {self.threshold:.1f}× over {self.samples} samples)" if self.tripwire else
+        how = (f"tripwire (> {self.threshold:.1f}× over {self.samples} samples, {self.since} after it)" if self.tripwire else
                f"over {self.samples} samples, threshold {(self.threshold - 1) * 100:+.0f} %")
         return (f"canary on segment {self.segment!r}: z RMS {self.rms_before_m * 100:.2f} cm before → "
                 f"{self.rms_after_m * 100:.2f} cm after the promotion ({self.change * 100:+.0f} %, {how}), {verb}")
@@ -245,7 +247,7 @@ class Canary:
         now = _rms(recent)
         if now <= c.trip_factor * before:
             return None
-        verdict = CanaryVerdict(True, segment, before, now, c.trip_samples, c.trip_factor, tripwire=True)
+        verdict = CanaryVerdict(True, segment, before, now, c.trip_samples, c.trip_factor, tripwire=True, since=since)
         self.disarm()
         return verdict
 
