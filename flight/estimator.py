@@ -415,7 +415,7 @@ class EstimatorCore:
         verdict = self.canary.observe(ref.segment, self._segment[1], z - ref.pos_enu_m[2])
         if verdict is None:
             return
-        text = f"{verdict.text()} at sample {ref.seq}"
+        text = verdict.text(ref.seq)
         self.canary_last = text
         self.changes += 1
         if not verdict.rollback:

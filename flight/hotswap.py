@@ -145,11 +145,13 @@ class CanaryVerdict:
     def change(self) -> float:
         return self.rms_after_m / self.rms_before_m - 1.0 if self.rms_before_m > 0 else math.inf
 
-    def text(self) -> str:
+    def text(self, seq: int | None = None) -> str:
+        """In words; ``seq``: the sample it was decided at, named when given."""
         verb = "worse: rolled back" if self.rollback else "kept"
         how = (f"tripwire (> {self.threshold:.1f}× over {self.samples} samples, {self.since} after it)" if self.tripwire else
                f"over {self.samples} samples, threshold {(self.threshold - 1) * 100:+.0f} %")
-        return (f"canary on segment {self.segment!r}: z RMS {self.rms_before_m * 100:.2f} cm before → "
+        at = "" if seq is None else f" at sample {seq}"
+        return (f"canary on segment {self.segment!r}{at}: z RMS {self.rms_before_m * 100:.2f} cm before → "
                 f"{self.rms_after_m * 100:.2f} cm after the promotion ({self.change * 100:+.0f} %, {how}), {verb}")
 
 
