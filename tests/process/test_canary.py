@@ -70,7 +70,7 @@ def test_a_bad_network_promoted_by_force_is_rolled_back_by_the_canary(tmp_path):
             decided = int(re.search(r"at sample (\d+)", text)[1])
             since = int(re.search(r"over \d+ samples, (\d+) after it", text)[1])
             before_cm, after_cm = map(float, re.search(r"z RMS ([\d.]+) cm before → ([\d.]+) cm after", text).groups())
-            assert after_cm > CanaryConfig().trip_factor * before_cm, text
+            assert after_cm >= CanaryConfig().trip_factor * before_cm - 0.02, text  # its text rounds to 0.01 cm
             trip = CanaryConfig().trip_samples
             at_decision = [k for k in truth if k in refs and decided - trip < k <= decided]
             rms_decision = math.sqrt(sum((truth[k] - refs[k]) ** 2 for k in at_decision) / len(at_decision))
