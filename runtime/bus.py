@@ -43,8 +43,9 @@ class BusConfig:
     dropping after 1 ms: with 2, a sample's puts back to back were dropped whenever the process's
     transmit thread was not scheduled within that millisecond — on a loaded machine 0.8–7 % of the
     samples of a 50 Hz loop lost their later topics, a third to a half with two more cores busy
-    (tests/process/test_bus_under_load.py); with 16, none. 16 is the most Zenoh documents; a frozen
-    subscriber still costs its publisher nothing but drops.
+    (tests/process/test_bus_under_load.py); with 16, none in 7 of 8 runs, 2 samples once against
+    23 beside it. 16 is the most Zenoh documents; a frozen subscriber still costs its publisher
+    nothing but drops.
     """
 
     connect: tuple[str, ...] = (DEFAULT_HUB,)
