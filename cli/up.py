@@ -307,14 +307,19 @@ def motive_argv(args) -> tuple[str, ...]:
                               "--natnet-version", args.natnet_version)
 
 
-def px4_argv(instance: int, vehicle: str, params: str = "") -> tuple[str, ...]:
-    """``neso px4`` as PX4 SITL ``instance`` for ``vehicle``, in a working folder of its own, emptied at each
-    (re)start so PX4 boots fresh (its .ulg logs stay there until the next); ``params``: another airframe file."""
+def px4_workdir(instance: int, vehicle: str) -> str:
+    """PX4 SITL ``instance``'s working folder for ``vehicle`` under ``neso up``: emptied at each (re)start so PX4
+    boots fresh; its ULogs (``log/<date>/*.ulg``, one per arming) stay there until the next."""
     import tempfile
 
-    workdir = os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{instance}-{vehicle}")
-    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir", workdir,
-                              *(("--params", params) if params else ()))
+    return os.path.join(tempfile.gettempdir(), f"neso-px4-{os.getuid()}-{instance}-{vehicle}")
+
+
+def px4_argv(instance: int, vehicle: str, params: str = "") -> tuple[str, ...]:
+    """``neso px4`` as PX4 SITL ``instance`` for ``vehicle``, in :func:`px4_workdir`; ``params``: another airframe
+    file."""
+    return python_module_argv("cli.main", "px4", "--instance", str(instance), "--workdir",
+                              px4_workdir(instance, vehicle), *(("--params", params) if params else ()))
 
 
 def run(args) -> int:

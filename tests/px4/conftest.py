@@ -52,6 +52,14 @@ class Px4Flight(NesoUp):
     def cmd(self, service: str, name: str, **args):
         return command(self.s, self.probe.keys, service, name, args, timeout_s=8.0)
 
+    def newest_ulog(self):
+        """PX4's newest ULog (the current arming's; PX4 writes it as it flies, so it may end a moment behind)."""
+        from pathlib import Path
+
+        from cli.up import px4_workdir
+
+        return max(Path(px4_workdir(self.instance, "uav1")).glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
+
     def telemetry(self):
         got = self.probe.get("telemetry")
         return got[-1] if got else None

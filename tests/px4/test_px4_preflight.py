@@ -140,7 +140,7 @@ def test_a_vehicle_with_a_global_origin_keeps_it_and_a_restarted_gateway_sends_n
         return sum("New NED origin" in line for line in flight.output)
 
     wait_for("the gateway set the origin", lambda: flight.log("the vehicle's global origin is set"), 30)
-    instance = _instance_of(flight)  # PX4 SITL instance i: offboard link on UDP 14580 + i, system id i + 1
+    instance = flight.instance  # PX4 SITL instance i: offboard link on UDP 14580 + i, system id i + 1
     conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{14580 + instance}", source_system=254, dialect="common")
     before = origins()
     for _ in range(3):  # UDP: say it more than once
@@ -166,20 +166,10 @@ def test_a_vehicle_with_a_global_origin_keeps_it_and_a_restarted_gateway_sends_n
     assert items["EKF2 fuses the motion capture"].startswith("NO-GO")  # its local height moved with the origin
 
 
-def _instance_of(flight) -> int:
-    for line in flight.output:
-        if "neso px4: PX4 SITL instance " in line:
-            return int(line.split("instance ")[1].split()[0])
-    raise AssertionError("PX4's instance is not in the output")
-
-
 def test_px4_dates_external_vision_by_the_capture_time(flight):
     """PX4's own log (its ULog, read while it runs): once its time sync with the gateway has converged, each
     external-vision sample is dated by the capture the gateway put in ODOMETRY's time_usec, ~10 ms (the world's mocap
     latency) before it arrived; before (time_usec 0, or no time sync) PX4 dated it on arrival."""
-    import tempfile
-    from pathlib import Path
-
     import numpy as np
     from pyulog import ULog
 
@@ -198,8 +188,7 @@ def test_px4_dates_external_vision_by_the_capture_time(flight):
 
     wait_for("the gateway's preflight: PX4 takes the capture time (its time sync converged) for 3 s",
              converged_for_3_s, 120, 1.0)
-    workdir = Path(tempfile.gettempdir()) / f"neso-px4-{os.getuid()}-{_instance_of(flight)}-uav1"
-    ulog = max(workdir.glob("log/*/*.ulg"), key=lambda p: p.stat().st_mtime)
+    ulog = flight.newest_ulog()
     data = ULog(str(ulog), ["vehicle_visual_odometry"]).data_list[0].data
     age_ms = (data["timestamp"].astype(np.int64) - data["timestamp_sample"].astype(np.int64)) / 1e3
     t_s = data["timestamp"] / 1e6
