@@ -19,8 +19,9 @@ the recorder's writer cost, and ``.rrd`` → training set for a 60 s flight.
 Then a flood of malformed payloads in the real-time loop, quiet beside flooded 1 s windows: deadlines missed, estimate
 latency, each process's CPU and the CPU a rejected payload costs (:mod:`bench.flood`, ~35 s; ``"flood"``).
 Then the TDR loop (:mod:`bench.tdr`, ~50 s): a 30 s recording → trained, certified, promoted network.
-Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99
-(:mod:`bench.gateway`, ~25 s).
+Then the PX4 gateway: setpoint on the bus → SET_ATTITUDE_TARGET at a MAVLink vehicle, p50/p99, and its
+watchdog with the motion capture lost (the failed poses' interval at the vehicle, quiet beside every core busy)
+(:mod:`bench.gateway`, ~40 s).
 Then real PX4 v1.16.0 SITL in the loop with the dashboard, hovering: the world's real-time factor and the setpoints
 missed in 60 s (:mod:`bench.px4`, ~100 s).
 Then motion capture over NatNet: a frame leaving the simulated Motive → the state on the bus, at 120 and 360 Hz

@@ -189,7 +189,7 @@ class MavlinkVehicle:
                 self._on_command(msg, now, arrived)
             elif kind == "ODOMETRY":
                 self._record({"t": arrived, "kind": "odometry", "xyz_ned": [msg.x, msg.y, msg.z], "q": list(msg.q),
-                              "frame": msg.frame_id})
+                              "frame": msg.frame_id, "quality": msg.quality})
             elif kind == "SET_GPS_GLOBAL_ORIGIN":  # PX4 takes it as its EKF origin and reports it back
                 self._record({"t": arrived, "kind": "global_origin", "lat_e7": msg.latitude, "lon_e7": msg.longitude})
                 self.origin = (msg.latitude, msg.longitude, msg.altitude)
