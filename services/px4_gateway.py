@@ -29,8 +29,9 @@ re-sends the last one at 20 Hz), answers ``arm disarm takeoff land hold offboard
 offboard_stop calibrate_hover preflight param_set`` commands with the vehicle's acknowledgement in words, publishes
 TelemetryMsg at 10 Hz, and forwards the bus state (motion capture) to PX4 as external-vision
 ODOMETRY stamped with the pose's capture (answering PX4's TIMESYNC so that it can use that time); while no state has
-come for ``pose_lost_after_s`` it repeats the last pose at 50 Hz with quality -1 (MAVLink's "odometry has failed"),
-so that PX4 knows the motion capture is lost rather than late. Every second it judges whether the vehicle may arm
+come for ``pose_lost_after_s`` it repeats the last pose with quality -1 (MAVLink's "odometry has failed") at each tick
+of its watchdog (``watchdog_hz``, 50 Hz, paced by deadlines; ticks later than a period are counted in its health
+report), so that PX4 knows the motion capture is lost rather than late. Every second it judges whether the vehicle may arm
 (:mod:`flight.preflight`, :mod:`services.px4_preflight`), publishes the verdict and refuses ``arm`` on a no-go unless
 the operator overrides it; it gives the vehicle a global origin only when it reports none.
 """
@@ -129,6 +130,9 @@ class GatewayConfig:
     hold_confirm_s: float = 2.5
     calibrate_s: float = 3.0
     telemetry_hz: float = 10.0
+    # the watchdog checks for stale setpoints and the failsafe this often, and while the motion capture is lost tells
+    # PX4 so and sends the level attitude each tick
+    watchdog_hz: float = 50.0
     # 0.3 s: longer than the gaps a wireless link has in normal use, so one of them is not taken for a lost motion
     # capture (which overrides the controller: level flight at hover thrust) — measured by others: UDP every 20 ms
     # over Wi-Fi, 18 latency spikes above 100 ms in 10 min, 12 above 200 ms, one of 250 ms (C. Huitema, "The weird
@@ -184,7 +188,8 @@ class GatewayCore:
     def __init__(self, config: GatewayConfig) -> None:
         self.config = config
         self.hover_thrust_norm = config.hover_thrust_norm
-        self.counts = {"refused_nonfinite": 0, "clamped_tilt": 0, "clamped_thrust": 0, "sent": 0, "pose_failed_sent": 0}
+        self.counts = {"refused_nonfinite": 0, "clamped_tilt": 0, "clamped_thrust": 0, "sent": 0, "pose_failed_sent": 0,
+                       "watchdog_late": 0}
         self.last_setpoint_s: float | None = None
         self.last_sent: Px4Attitude | None = None
         self.failsafe = ""  # "", "hold" or "land"
@@ -443,6 +448,7 @@ class Px4Link:
         self.system_id = 0
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
+        self.watchdog_worst_late_s = 0.0  # the watchdog's latest tick, after its deadline
         self.last_pose_capture_s = 0.0  # its capture on this process's clock (ODOMETRY time_usec)
         self.actions: queue.Queue = queue.Queue()
         self.said: queue.Queue = queue.Queue()  # PX4's words not yet on the bus, in order (each gets a message)
@@ -750,13 +756,24 @@ class Px4Link:
 
     # -- loops ---------------------------------------------------------------------------
     def _watchdog_loop(self) -> None:
-        while not self.node.wait(0.02):
+        """A tick every 1/``watchdog_hz`` s, on deadlines: a tick's work (while the motion capture is lost, two MAVSDK
+        calls, each a gRPC round trip to ``mavsdk_server``) does not push the next tick later. A tick more than a
+        period late is counted in the health report (``watchdog late``, with the worst) and the ticks go on from
+        then, not in a burst."""
+        period_s = 1.0 / self.config.watchdog_hz
+        due_s = time.monotonic() + period_s
+        while not self.node.wait(max(0.0, due_s - time.monotonic())):
             with self.node.lock:
                 now = time.monotonic()
+                late_s, due_s = now - due_s, due_s + period_s
+                if late_s > period_s:
+                    self.core.counts["watchdog_late"] += 1
+                    self.watchdog_worst_late_s = max(self.watchdog_worst_late_s, late_s)
+                    due_s = now + period_s
                 action = self.core.check_stale(now, offboard=self.tele["mode"] == "OFFBOARD", armed=self.tele["armed"])
                 pose_failed = self.core.pose_failed(now) and self.direct is not None and self.last_pose is not None
                 if pose_failed:
-                    self._forward_pose(self.last_pose, self.last_pose_capture_s, quality_percent=-1)  # at 50 Hz
+                    self._forward_pose(self.last_pose, self.last_pose_capture_s, quality_percent=-1)  # each tick
                     self.core.counts["pose_failed_sent"] += 1
                 if (pose_failed or self.core.failsafe) and self.offboard is not None and self.tele["mode"] == "OFFBOARD":
                     level = self.core.level_setpoint()
@@ -829,5 +846,6 @@ class Px4Link:
         return (f"{'connected' if self.system is not None else 'waiting for the vehicle'}, mode {self.tele['mode']}, "
                 f"armed {self.tele['armed']}, hover {self.core.hover_thrust_norm:.3f}, sent {c['sent']}, "
                 f"refused {c['refused_nonfinite']}, clamped tilt {c['clamped_tilt']} thrust {c['clamped_thrust']}, "
-                f"mocap failed sent {c['pose_failed_sent']}"
+                f"mocap failed sent {c['pose_failed_sent']}, watchdog late {c['watchdog_late']}"
+                + (f" (worst {self.watchdog_worst_late_s * 1e3:.0f} ms)" if c["watchdog_late"] else "")
                 + (f", FAILSAFE {self.core.failsafe}" if self.core.failsafe else ""))
