@@ -448,7 +448,7 @@ class Px4Link:
         self.system_id = 0
         self.last_attitude = None  # the newest setpoint handed to MAVSDK (mavsdk.plugins.offboard.Attitude)
         self.last_pose: StateMsg | None = None  # the newest state forwarded to PX4
-        self.watchdog_worst_late_s = 0.0  # the watchdog's latest tick, after its deadline
+        self.watchdog_worst_late_s = 0.0  # the latest any watchdog tick ran after its deadline (s)
         self.last_pose_capture_s = 0.0  # its capture on this process's clock (ODOMETRY time_usec)
         self.actions: queue.Queue = queue.Queue()
         self.said: queue.Queue = queue.Queue()  # PX4's words not yet on the bus, in order (each gets a message)
