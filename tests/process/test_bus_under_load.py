@@ -6,7 +6,9 @@ puts back to back were dropped whenever the publisher's transmit thread was not 
 The publisher and two busy loops run at nice 10 (the load is theirs, not the other tests'); Zenoh's default queue
 flies beside the product's one, in the same process and loop, so the load that drops one is shown to be there: the
 publisher paces until Zenoh's default has dropped puts of ``REPRODUCED`` samples (at least ``MIN_S``, at most
-``MAX_S``).
+``MAX_S``). It paces as the product's world loop does: more than a period behind, it goes on from now. It used to
+put the missed samples back to back, a burst no product loop sends, and each stall of the whole process (CI, 41a1901:
+38 samples lost in runs of three, 20-22, 52-54, …) overflowed even 16 batches.
 """
 from __future__ import annotations
 
@@ -85,14 +87,15 @@ def test_a_50_hz_loop_drops_a_fifth_at_most_of_what_zenohs_default_queue_drops_b
             proc.wait()
         for listener in (ours, default):
             listener.close()
-    samples = int(last.split()[1])
+    samples, reanchored = int(last.split()[1]), int(last.split()[3])
     lost_ours, lost_default = ours.lost(samples), default.lost(samples)
     dropped_default = sorted(set().union(*lost_default.values()))
     print(f"{samples} samples × {len(TOPICS)} topics under load: {BusConfig().tx_queue_batches} batches lost "
           f"{sum(map(len, lost_ours.values()))} puts, Zenoh's default {ZENOH_DEFAULT_BATCHES} lost "
-          f"{sum(map(len, lost_default.values()))} puts in {len(dropped_default)} samples")
+          f"{sum(map(len, lost_default.values()))} puts in {len(dropped_default)} samples; the loop was more than a "
+          f"period behind {reanchored} times")
     assert dropped_default, "the load did not reproduce the drops: Zenoh's default queue lost nothing beside ours"
-    # none in most runs; once (quiet run 24, a flight at nice 0 beside this test's nice-10 load) a stall of the
-    # publisher's transmit thread filled even 16 batches: 2 samples against Zenoh's 23 beside it
+    # none in most runs, but not always: with the publisher's whole process stopped 50 ms every 0.7 s and three busy
+    # cores beside it, 1 sample against Zenoh's 146 (its transmit thread starved while its loop went on)
     dropped_ours = sorted(set().union(*lost_ours.values()))
     assert len(dropped_ours) <= len(dropped_default) / 5, (dropped_ours[:10], len(dropped_default))
