@@ -58,7 +58,7 @@ def writer_cpu_s_per_flight_s(flight_s: float, workdir: Path) -> tuple[float, fl
 def real_flight(flight_s: float, workdir: Path) -> Path:
     """A real lockstep flight of ``flight_s`` recorded by the recorder; the file it wrote."""
     directory = workdir / "flight"
-    proc = neso("up", "--hub", f"tcp/127.0.0.1:{free_port()}", "--lockstep", "--wait-for", "recorder", "--no-dashboard",
+    proc = neso("up", "--hub", f"tcp/127.0.0.1:{free_port()}", "--lockstep", "--no-dashboard",
                 "--duration", f"{flight_s:g}", "--mission", "hover", "--pathway", "neural_eso",
                 "--recordings-dir", str(directory))
     try:

@@ -88,7 +88,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--mavlink-port", type=int, default=14540, help="UDP port of the gateway's MAVLink link (--vehicle mavlink)")
     p.add_argument("--mavlink-log", default="", help="--vehicle mavlink: the simulated PX4 logs what it received here")
     p.add_argument("--hub", default=None, help=f"hub endpoint (default {DEFAULT_HUB}; --secure: {SECURE_HUB})")
-    p.add_argument("--wait-for", default="", help="extra services a lockstep source waits for (comma-separated)")
+    p.add_argument("--wait-for", default="", help="services the world waits for besides its loop and the recorder "
+                                                  "(comma-separated)")
     p.add_argument("--low-latency", action="store_true", help="Zenoh lowlatency transport on every process")
     p.add_argument("--process-per-role", action=argparse.BooleanOptionalAction, default=None,
                    help="one estimator, one controller and one recorder process serve every vehicle (a thread per "
@@ -124,7 +125,11 @@ def service_argv(role: str, vehicle: str, args, index: int) -> tuple[str, ...]:
         common.append("--lockstep")
     specific: list[str] = []
     if role == "source":
-        wait_for = ",".join(["estimator", "controller"] + [s for s in args.wait_for.split(",") if s])
+        from flight.source import SourceConfig
+
+        # the recorder too: a flight it joined late would be recorded without its start
+        recorder = ("recorder",) if args.record else ()
+        wait_for = ",".join(SourceConfig().wait_for + recorder + tuple(s for s in args.wait_for.split(",") if s))
         specific = ["--scenario", args.scenario, "--seed", str(args.seed + index), "--rate", str(args.rate),
                     "--start", args.start, "--duration", str(args.duration), "--wait-for", wait_for]
         if args.lockstep:

@@ -51,8 +51,11 @@ class RecorderConfig:
     flush_period_s: float = option(0.1, flag="--flush-period", unit="s", help="between flushes to disk (≤ 0.2)")
     params_timeout_s: float = 1.0  # per service, all asked at once at a flight's start (answers take ~1 ms)
     preroll_s: float = 2.0  # > start_after_s: the take-off the debounce waited through is in the file
-    start_after_s: float = 0.5  # flying this long without a break starts a flight
-    idle_end_s: float = 2.0  # not flying this long without a break ends it
+    # flying this long without a break starts a flight, not flying this long ends it: on the wall clock (arrival) or
+    # the flight's own (its states' t_s), whichever is further on: a lockstep world runs faster than the wall (a 3 s
+    # flight once ended before 0.5 s of the wall had passed, and nothing was recorded)
+    start_after_s: float = 0.5
+    idle_end_s: float = 2.0
     telemetry_timeout_s: float = 2.0  # vehicle telemetry younger than this decides "flying" (else the setpoints)
     silence_end_s: float = 2.0
     resume_window_s: float = 10.0
@@ -73,7 +76,7 @@ class Decision:
 @dataclass
 class FlightTracker:
     """Pure flight-boundary logic: feed it messages in arrival order (and :meth:`tick` it), act on
-    its decisions. Times are the caller's monotonic seconds."""
+    its decisions. Times are the caller's monotonic seconds (arrival), and the flight's own from its states' ``t_s``."""
 
     config: RecorderConfig
     recording: bool = False
@@ -83,7 +86,9 @@ class FlightTracker:
     last_state_s: float = -1.0
     first_seq: int = -1
     flying: bool = False  # the signal's current value ...
-    since_s: float | None = None  # ... and since when it has had it without a break
+    since_s: float | None = None  # ... and since when it has had it without a break (arrival) ...
+    since_flight_t_s: float | None = None  # ... and in the flight's time
+    flight_t_s: float | None = None  # the newest state's t_s
     why: str = ""  # what the signal is ("armed and in the air (telemetry)", ...)
     telemetry_s: float | None = None  # arrival of the newest telemetry
 
@@ -94,6 +99,9 @@ class FlightTracker:
                 d.stop = f"the source restarted (sample {msg.seq} after {self.last_seq})"
                 self._stopped()
             self.last_seq, self.last_state_s = msg.seq, now_s
+            if self.since_s is not None and (self.since_flight_t_s is None or msg.t_s < self.flight_t_s):
+                self.since_flight_t_s = msg.t_s  # the first state since the signal, or the flight's clock restarted
+            self.flight_t_s = msg.t_s
         elif channel == "telemetry":
             self.telemetry_s = now_s
             flying = msg.armed and msg.in_air
@@ -110,11 +118,13 @@ class FlightTracker:
 
     def _signal(self, flying: bool, why: str, now_s: float) -> None:
         if flying != self.flying or self.since_s is None:
-            self.flying, self.since_s = flying, now_s
+            self.flying, self.since_s, self.since_flight_t_s = flying, now_s, self.flight_t_s
         self.why = why
 
     def _decide(self, d: Decision, now_s: float) -> Decision:
         held_s = now_s - self.since_s if self.since_s is not None else 0.0
+        if self.since_flight_t_s is not None:
+            held_s = max(held_s, self.flight_t_s - self.since_flight_t_s)
         if not self.flying and held_s >= self.config.idle_end_s:
             self.suppressed = False  # landed: the next take-off is a new flight
             if self.recording and not self.manual:
@@ -537,9 +547,12 @@ def run(args, bus) -> int:
                                    else ""))
     writer_thread = threading.Thread(target=recorder.run, name="recorder-writer", daemon=True)
 
+    # every key of the vehicle, the per-service ones included: wider than the role's typed topics. Declared before
+    # run_node declares the recorder alive, as the other services subscribe: a world that waits for the recorder
+    # (neso up) then starts with every sample recorded; the writer starts below, the queue holds what comes first
+    everything = node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample)
+
     def main(node: Node) -> None:
-        # every key of the vehicle, the per-service ones included: wider than the role's typed topics
-        everything = node.session.declare_subscriber(f"{node.keys.prefix}/**", on_sample)
         writer_thread.start()
         node.log(f"recording {args.vehicle} into {config.directory} "
                  f"({'manual' if not config.auto else 'a file per flight'}, flush every {config.flush_period_s:g} s)")

@@ -117,3 +117,24 @@ def test_a_paced_lockstep_flight_is_no_faster_than_its_pace_and_loses_nothing():
     assert min(gaps_s) >= 1.0 / rate_hz / pace - 1e-6, (min(gaps_s), gaps_s.index(min(gaps_s)))
     print(f"\n{n} samples: {world_s:.2f} s of the world in {wall_s:.2f} s of the wall clock ({world_s / wall_s:.2f}× "
           f"real time, at most {pace:g}×)")
+
+
+def test_a_short_lockstep_flight_is_recorded_whole(tmp_path):
+    """``neso up --lockstep --duration 3``, as fast as its services answer: the flight's recording holds every one of
+    its 150 states and setpoints, from sample 0. Such a flight once went unrecorded (loaded run 39; every time on a
+    quiet machine too): it was over before the recorder's 0.5 s of flying had passed on the wall clock, the only clock
+    its flights began by. The world also waits for the recorder now, and the recorder says it is alive once
+    subscribed."""
+    from recordings.reader import read_recording
+
+    n = 150
+    r = subprocess.run([sys.executable, "-m", "cli.main", "up", "--lockstep", "--duration", str(n / 50),
+                        "--hub", f"tcp/127.0.0.1:{free_port()}", "--no-dashboard", "--no-trainer",
+                        "--recordings-dir", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "Traceback" not in r.stdout + r.stderr, r.stdout[-3000:] + r.stderr[-3000:]
+    files = sorted(tmp_path.glob("*.rrd"))
+    assert len(files) == 1, (files, r.stdout[-3000:])
+    rec = read_recording(files[0])
+    for topic in ("state", "setpoint"):
+        # a set: a state unanswered for a second is sent again (a loaded machine), and both are recorded
+        assert sorted({m.seq for m in rec.channel(topic).messages()}) == list(range(n)), (topic, r.stdout[-3000:])

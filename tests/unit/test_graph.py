@@ -91,6 +91,16 @@ def test_the_px4_gateway_runs_only_with_the_mavlink_vehicle_and_both_share_one_p
     assert source[source.index("--link") + 1] == "mavlink"
     assert source[source.index("--mavlink-out") + 1] == "udpout:127.0.0.1:15000"
 
+def test_the_world_waits_for_its_loop_the_recorder_when_it_records_and_any_service_asked():
+    def waits(*flags: str) -> list[str]:
+        source = {s.name: s.argv for s in build_specs(build_parser().parse_args(["up", *flags]))}["source"]
+        return source[source.index("--wait-for") + 1].split(",")
+
+    assert waits() == ["estimator", "controller", "recorder"]  # every flight recorded from its sample 0
+    assert waits("--no-record") == ["estimator", "controller"]
+    assert waits("--no-record", "--wait-for", "probe") == ["estimator", "controller", "probe"]
+
+
 def test_a_per_bus_role_runs_once_for_all_vehicles_and_can_be_turned_off():
     args = build_parser().parse_args(["up", "--name", "a", "--name", "b", "--dashboard-port", "8181"])
     specs = {s.name: s for s in build_specs(args)}

@@ -191,6 +191,22 @@ def test_flight_starts_after_half_a_second_of_thrust_ends_after_two_without_and_
     assert tr.tick(4.0).stop == "" and "no state samples" in tr.tick(6.0).stop
 
 
+def test_a_lockstep_flight_faster_than_the_wall_starts_and_ends_in_its_own_time():
+    """A lockstep world 20× faster than the wall: half a second of the flight's own time (its states' ``t_s``) starts
+    it, two seconds of it without thrust end it, though only 25 and 100 ms of the wall went by (a 3 s lockstep flight
+    was once over before 0.5 s of the wall, and went unrecorded)."""
+    tr = FlightTracker(RecorderConfig())
+
+    def sample(k: int, thrust: float) -> list:  # the world's 20 ms, arrived 1 ms of the wall after the last one
+        return [tr.on_message("state", _st(k), k * 0.001), tr.on_message("setpoint", _sp(k, thrust), k * 0.001)]
+
+    started = [(k, d.start) for k in range(26) for d in sample(k, 5.0) if d.start]
+    assert len(started) == 1 and started[0][0] == 25 and started[0][1].startswith("flying for 0.5 s"), started
+    landed = [(k, d.stop) for k in range(26, 200) for d in sample(k, 0.0) if d.stop]
+    assert len(landed) == 1 and landed[0][1].startswith("landed: not flying for 2 s"), landed
+    assert landed[0][0] * PERIOD_S - 26 * PERIOD_S == pytest.approx(2.0, abs=PERIOD_S), landed  # 2 s of its time
+
+
 def test_telemetry_decides_when_present_and_a_flapping_signal_never_makes_flights():
     """The issue's PX4 case: the controller commands thrust, the vehicle says disarmed (10 Hz):
     no flight at all, however long; then a real one, armed and in the air, is one flight."""
