@@ -226,6 +226,17 @@ def wait_text(page, pattern: str, timeout_s: float = 10.0) -> str:
                          f"{watch_of(page)}")
 
 
+def loop_rates_until_steady(page, timeout_s: float = 10.0) -> list[float]:
+    """The page's loop rate (Hz), read every 0.25 s until it is the loop's 50 Hz within ±10 % or ``timeout_s``
+    passed; every reading. The rate is of the last 2 s of setpoint stamps: a moment the machine starved the loop
+    shows lower for 2 s (CI, a busy machine: 33.4 Hz; a quiet run's two lanes, the world stood still 0.95 s: 33.3)."""
+    rates, deadline = [], time.monotonic() + timeout_s
+    while not rates or not 45.0 <= rates[-1] <= 55.0 and time.monotonic() < deadline:
+        time.sleep(0.25 if rates else 0.0)
+        rates.append(float(re.search(r"loop rate\s*([\d.]+) Hz", text(page)).group(1)))
+    return rates
+
+
 STATUS_JS = """() => Object.fromEntries([...document.querySelectorAll('[data-slot]')]
     .map(e => [e.dataset.slot, e.textContent]))"""
 PLOT_POINTS_JS = """() => Object.values((window.__viserTestpoints || {}).uplots || {})

@@ -6,7 +6,6 @@ this module checks they survive the secure bus.
 """
 from __future__ import annotations
 
-import re
 import tempfile
 import time
 
@@ -15,7 +14,8 @@ import pytest
 from neso.netfile import load_network
 from runtime.client import get_params
 from runtime.schema import Keys
-from tests.browser.chromium import choose, dashboard_page, set_lipschitz, tab, text, wait_status, wait_text
+from tests.browser.chromium import (choose, dashboard_page, loop_rates_until_steady, set_lipschitz, tab, wait_status,
+                                    wait_text)
 from tests.busutil import NesoUp, free_port, secure_init, secure_peer
 from tests.helpers import REPO
 
@@ -49,8 +49,8 @@ def flight():
 def test_the_page_shows_the_secure_flight(flight):
     t = wait_text(flight.page, r"loop rate\s*\d+\.\d Hz")
     assert "uav1" in t and "pathway" in t and "certificate" in t
-    rate = float(re.search(r"loop rate\s*([\d.]+) Hz", text(flight.page)).group(1))
-    assert 35.0 < rate < 65.0, rate
+    rates = loop_rates_until_steady(flight.page)  # quiet run 29: a stall of the loop showed 33.3 Hz for 2 s
+    assert 45.0 <= rates[-1] <= 55.0, rates  # the loop's 50 Hz (before: one reading, anything in 35-65 Hz)
     assert "[hub] Zenoh router" in "".join(flight.output) and "mutual TLS" in "".join(flight.output)
 
 
