@@ -1,12 +1,13 @@
 """Motion capture lost with real PX4 v1.16.0 SITL (`neso cmd source lose_tracking`, on the tier's shared flight, tests in
 file order): the gateway tells PX4 the external vision failed (ODOMETRY quality -1, which EKF2 does not fuse with
-EKF2_EV_QMIN 1) until states come back, and flies the vehicle level meanwhile. Lost for about 0.6 s of the gateway's
-clock (the wall's), less than its 1 s without setpoints: PX4 told within the gateway's pose_lost_after_s (0.3 s) and
-again when tracked, over the span the gateway went without states; PX4's own log shows it heard so in its time
-(lockstep: the world's) before EKF2 would have stopped the vision by itself; and the flight goes on: no crash, in the
-air, in offboard, back at its hover, one recording through it all. That loss is held on the wall clock, not the
-world's: a loaded machine slows the world in lockstep with PX4, and half a second of the world's time once lasted 1.26
-s for the gateway, whose failsafe then rightly held and landed (loaded run 67).
+EKF2_EV_QMIN 1) until states come back, and flies the vehicle level meanwhile. Lost for about 0.5 s of the gateway's
+clock (the wall's), less than its 1 s without setpoints (flown again if a stall of the machine made it longer): PX4
+told within the gateway's pose_lost_after_s (0.3 s) and again when tracked, over the span the gateway went without
+states; PX4's own log shows it heard so in its time (lockstep: the world's) before EKF2 would have stopped the vision
+by itself; and the flight goes on: no crash, in the air, in offboard, back at its hover, one recording through it all.
+That loss is held on the wall clock, not the world's: a loaded machine slows the world in lockstep with PX4, and half
+a second of the world's time once lasted 1.26 s for the gateway, whose failsafe then rightly held and landed (loaded
+run 67); held on the wall clock, a 0.95 s stall of the world's process made 0.55 s last 1.53 s (quiet run 29).
 How often the watchdog tells PX4 on the wall clock (50 Hz, quiet or loaded) is measured in ``make bench``
 (:mod:`bench.gateway`). Lost longer than the gateway's 1 s without setpoints
 (``stale_max_s``: the loop has no states to answer), its failsafe takes over: PX4's Hold, then its Land, disarmed,
@@ -25,6 +26,9 @@ GATEWAY = GatewayConfig()  # its watchdog sends the last pose, quality -1, once 
 # PX4 v1.16's EKF2 stops fusing external vision by itself when no sample has come for 2 × EV_MAX_INTERVAL (200 ms) of
 # its time (ev_control.cpp, "vision data stopped"; common.h)
 EKF2_VISION_STOPPED_S = 2 * 0.2
+# the loss that must not end the flight is flown again (after the failsafe's landing) when a stall of the machine made
+# it last the gateway's failsafe second: at most this many times
+ATTEMPTS = 3
 
 
 def px4_heard(flight) -> tuple[int, float, float]:
@@ -100,31 +104,39 @@ def modes_since(flight, stamp_s: float) -> list[tuple[bool, str]]:
 
 
 def test_motion_capture_lost_shorter_than_the_gateways_second_is_told_to_px4_and_the_flight_goes_on(flight):
-    flight.airborne()
     health: list[HealthMsg] = []
     flight.s.declare_subscriber(flight.probe.keys.health("px4_gateway"),
                                 lambda smp: health.append(HealthMsg.from_bytes(smp.payload.to_bytes())))
-    time.sleep(3.0)
-    sent_before, late_before = gateway_counts(health)
-    lost_world_s, said = lose_on_the_wall_clock(flight, 0.55, 5.0)
+    for attempt in range(1, ATTEMPTS + 1):
+        flight.airborne()
+        time.sleep(3.0)
+        sent_before, late_before = gateway_counts(health)
+        lost_world_s, said = lose_on_the_wall_clock(flight, 0.45, 5.0)
+        states = [m for m in flight.probe.get("state") if m.t_s > lost_world_s - 1.0]
+        state_t = np.array([m.t_s for m in states])
+        gap = int(np.argmax(np.diff(state_t)))  # the last tracked state before the loss, in ``states``
+        # the loss on the wall clock: from the last tracked state to the next one (their stamps)
+        wall_s = states[gap + 1].stamp_s - states[gap].stamp_s
+        if wall_s < GATEWAY.stale_max_s or attempt == ATTEMPTS:
+            break
+        # not the loss this test is about: a stall of the machine lengthened it past the gateway's second, whose
+        # failsafe then rightly held and landed (quiet run 29: the world stood still 0.95 s in it). Landed: again
+        print(f"\nattempt {attempt}: the loss lasted {wall_s:.2f} s on the wall; "
+              f"{[line.strip() for line in said if 'stood still' in line or 'failsafe' in line]}")
+        wait_for("PX4 disarmed after the failsafe's land", lambda: not flight.telemetry().armed, 60)
     wait_for("a health report after it", lambda: health and health[-1].stamp_s > time.monotonic() - 0.5, 5)
     told = [line for line in said if "PX4 told it failed" in line]
     back = [line for line in said if "motion capture back after" in line]
     px4 = [line for line in said if "vehicle says" in line]
     truth = [m for m in flight.probe.get("truth") if m.t_s > lost_world_s - 1.0]
-    states = [m for m in flight.probe.get("state") if m.t_s > lost_world_s - 1.0]
     t_world = np.array([m.t_s for m in truth])
     pos = np.array([m.pos_enu_m for m in truth])
     at = pos[np.searchsorted(t_world, lost_world_s)]
-    state_t = np.array([m.t_s for m in states])
-    gap = int(np.argmax(np.diff(state_t)))  # the last tracked state before the loss, in ``states``
     found_world_s = float(state_t[gap + 1])
     blind = np.linalg.norm(pos[(t_world > lost_world_s) & (t_world < found_world_s)] - at, axis=1).max()
     refs = {m.seq: np.array(m.pos_enu_m) for m in flight.probe.get("reference")}
     last_2_s = [np.linalg.norm(np.array(m.pos_enu_m) - refs[m.seq]) for m in truth
                 if m.t_s > found_world_s + 3.0 and m.seq in refs]
-    # the loss on the wall clock: from the last tracked state to the next one (their stamps)
-    wall_s = states[gap + 1].stamp_s - states[gap].stamp_s
     state_gaps = np.diff(state_t)
     sent, late = np.subtract(gateway_counts(health), (sent_before, late_before))
     modes = modes_since(flight, truth[0].stamp_s)
@@ -138,7 +150,8 @@ def test_motion_capture_lost_shorter_than_the_gateways_second_is_told_to_px4_and
     assert len(told) == 1 and len(back) == 1, said[-30:]
     assert np.sum(state_gaps > 0.05) == 1, "no state for one span, states every period before and after it"
     # the loss this test is about: told (after pose_lost_after_s), and shorter than the gateway's failsafe's second
-    assert GATEWAY.pose_lost_after_s + 0.1 <= wall_s < GATEWAY.stale_max_s, f"the test's loss lasted {wall_s:.2f} s"
+    assert GATEWAY.pose_lost_after_s + 0.1 <= wall_s < GATEWAY.stale_max_s, \
+        f"the test's loss lasted {wall_s:.2f} s, in each of {ATTEMPTS} attempts"
     gap_s = float(back[0].split("motion capture back after ")[1].split(" s")[0])
     assert abs(gap_s - wall_s) < 0.1, (gap_s, wall_s)  # the gateway saw that span, as the world made it
     lost_for_s = gap_s - GATEWAY.pose_lost_after_s  # told after pose_lost_after_s without a state, until one came
