@@ -19,6 +19,7 @@ from dataclasses import replace
 from flight.deadline import DeadlineWatch
 from flight.source import SimSource, SourceConfig, frame_matrix
 from runtime.options import add_options, config_from_options
+from runtime.pacing import next_wait
 from runtime.schema import SetpointMsg, StateMsg
 from runtime.stall import StallWatch
 
@@ -175,11 +176,9 @@ def _run_sim(node, config: SourceConfig, world=None) -> None:
             # lockstep: from this sample's stamp, so a late sample is never followed by one sooner than period (a
             # fixed grid would catch up, faster than the pace); real time: on the grid, catching up a late one
             next_tick = state.stamp_s + period if config.lockstep else next_tick + period
-            delay = next_tick - time.monotonic()
+            delay, next_tick = next_wait(next_tick, period, time.monotonic())
             if delay > 0:
                 node.wait(delay)
-            elif delay < -period:
-                next_tick = time.monotonic()  # fell behind by more than a period: re-anchor
     if stall is not None:
         stall.close()
     node.log(f"done: {core.seq + 1} samples, t={core.sim.t_s:.2f} s, deadline misses {misses[0]}")
@@ -214,12 +213,9 @@ def _run_sim_mavlink(node, config: SourceConfig) -> None:
                 put_state(state)
                 put_truth(truth)
                 node.stats.output(time.monotonic() - state.stamp_s)
-            next_tick += period
-            delay = next_tick - time.monotonic()
+            delay, next_tick = next_wait(next_tick + period, period, time.monotonic())
             if delay > 0:
                 node.wait(delay)
-            elif delay < -period:
-                next_tick = time.monotonic()
     finally:
         vehicle.close()
     node.log(f"done: {core.seq + 1} samples, t={core.sim.t_s:.2f} s")

@@ -14,6 +14,7 @@ import threading
 import time
 
 from runtime.bus import BusConfig, open_session, publisher_qos
+from runtime.pacing import next_wait
 from runtime.schema import Keys
 
 #: The streams one sample puts back to back: the loop's own and the ones that travel beside it.
@@ -41,15 +42,13 @@ def main(seconds: float, pairs: list[str]) -> None:
         for pubs in publishers:
             for pub in pubs:
                 pub.put(payload)
-        next_tick += PERIOD_S
-        delay = next_tick - time.monotonic()
+        # the product's world loop's rule: more than a period behind, it goes on from now instead of putting the
+        # missed samples back to back, a burst no product loop sends
+        due = next_tick + PERIOD_S
+        delay, next_tick = next_wait(due, PERIOD_S, time.monotonic())
+        reanchored += next_tick != due
         if delay > 0:
             time.sleep(delay)
-        elif delay < -PERIOD_S:
-            # as the product's world loop (services/source.py): behind by more than a period, it re-anchors instead
-            # of putting the missed samples back to back, a burst no product loop sends
-            next_tick = time.monotonic()
-            reanchored += 1
     time.sleep(0.5)
     print(f"sent {seq} reanchored {reanchored}", flush=True)
     for session in sessions:
