@@ -7,7 +7,8 @@ states; PX4's own log shows it heard so in its time (lockstep: the world's) befo
 by itself; and the flight goes on: no crash, in the air, in offboard, back at its hover, one recording through it all.
 That loss is held on the wall clock, not the world's: a loaded machine slows the world in lockstep with PX4, and half
 a second of the world's time once lasted 1.26 s for the gateway, whose failsafe then rightly held and landed (loaded
-run 67); held on the wall clock, a 0.95 s stall of the world's process made 0.55 s last 1.53 s (quiet run 29).
+run 67); held on the wall clock, a 0.95 s stall of the world's process made 0.55 s last 1.53 s (quiet run 29), and
+one of 0.80 s after the loss made the gateway tell PX4 of a second one (quiet run 31): flown again then.
 How often the watchdog tells PX4 on the wall clock (50 Hz, quiet or loaded) is measured in ``make bench``
 (:mod:`bench.gateway`). Lost longer than the gateway's 1 s without setpoints
 (``stale_max_s``: the loop has no states to answer), its failsafe takes over: PX4's Hold, then its Land, disarmed,
@@ -26,8 +27,8 @@ GATEWAY = GatewayConfig()  # its watchdog sends the last pose, quality -1, once 
 # PX4 v1.16's EKF2 stops fusing external vision by itself when no sample has come for 2 × EV_MAX_INTERVAL (200 ms) of
 # its time (ev_control.cpp, "vision data stopped"; common.h)
 EKF2_VISION_STOPPED_S = 2 * 0.2
-# the loss that must not end the flight is flown again (after the failsafe's landing) when a stall of the machine made
-# it last the gateway's failsafe second: at most this many times
+# the loss that must not end the flight is flown again (after the failsafe's landing, if any) when a stall of the
+# machine made it last the gateway's failsafe second, or made a loss of its own: at most this many times
 ATTEMPTS = 3
 
 
@@ -117,13 +118,17 @@ def test_motion_capture_lost_shorter_than_the_gateways_second_is_told_to_px4_and
         gap = int(np.argmax(np.diff(state_t)))  # the last tracked state before the loss, in ``states``
         # the loss on the wall clock: from the last tracked state to the next one (their stamps)
         wall_s = states[gap + 1].stamp_s - states[gap].stamp_s
-        if wall_s < GATEWAY.stale_max_s or attempt == ATTEMPTS:
+        # losses the gateway saw besides the test's: a stall of the world's process (no states on the wall clock)
+        others = int(np.sum(np.diff([m.stamp_s for m in states]) > GATEWAY.pose_lost_after_s)) - 1
+        if wall_s < GATEWAY.stale_max_s and not others or attempt == ATTEMPTS:
             break
         # not the loss this test is about: a stall of the machine lengthened it past the gateway's second, whose
-        # failsafe then rightly held and landed (quiet run 29: the world stood still 0.95 s in it). Landed: again
-        print(f"\nattempt {attempt}: the loss lasted {wall_s:.2f} s on the wall; "
+        # failsafe then rightly held and landed (quiet run 29: the world stood still 0.95 s in it), or made one more
+        # (quiet run 31: 0.80 s, 3 s after it; the gateway told PX4 twice). Again, once landed if it landed
+        print(f"\nattempt {attempt}: the loss lasted {wall_s:.2f} s on the wall, {others} more; "
               f"{[line.strip() for line in said if 'stood still' in line or 'failsafe' in line]}")
-        wait_for("PX4 disarmed after the failsafe's land", lambda: not flight.telemetry().armed, 60)
+        if any("failsafe" in line for line in said):
+            wait_for("PX4 disarmed after the failsafe's land", lambda: not flight.telemetry().armed, 60)
     wait_for("a health report after it", lambda: health and health[-1].stamp_s > time.monotonic() - 0.5, 5)
     told = [line for line in said if "PX4 told it failed" in line]
     back = [line for line in said if "motion capture back after" in line]
